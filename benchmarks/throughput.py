@@ -1,0 +1,106 @@
+"""Environment and training throughput of one environment, measured in one process.
+
+    python benchmarks/throughput.py --env cartpole --num-envs 1024 --json OUT.json
+
+env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random actions, timed
+after a warm-up call. train_sps: the full PPO/RPO update (rollout, GAE, epochs of minibatch SGD)
+with the `isaacgym` preset at --num-envs, timed after compilation. compile_seconds: the
+ahead-of-time compilation of that training program.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from rpo_jax import envs, ppo
+
+
+def best_of(fn, repeats: int) -> float:
+    """Fastest wall time of `fn()` over `repeats` calls (the least disturbed by other load)."""
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def env_steps_per_second(name: str, num_envs: int, num_steps: int, repeats: int) -> float:
+    env = envs.make_vector_env(name, num_envs)
+    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
+
+    @jax.jit
+    def rollout(key):
+        state, ts = env.reset(key)
+
+        def step(state, key):
+            action = jax.random.uniform(key, (num_envs, env.spec.action_size), minval=low, maxval=high)
+            state, ts = env.step(state, action)
+            return state, ts.reward.sum()
+
+        _, rewards = jax.lax.scan(step, state, jax.random.split(key, num_steps))
+        return rewards.sum()
+
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(rollout(key))  # compile and warm up
+    return num_envs * num_steps / best_of(lambda: rollout(key), repeats)
+
+
+def train_steps_per_second(name: str, num_envs: int, num_updates: int, repeats: int) -> tuple[float, float]:
+    config = dataclasses.replace(ppo.PRESETS["isaacgym"], num_envs=num_envs, rpo_alpha=0.5)
+    config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
+    trainer = ppo.make_trainer(config, envs.make_env(name))
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    start = time.perf_counter()
+    run = jax.jit(lambda s: trainer.run(s, num_updates)).lower(state).compile()
+    compile_seconds = time.perf_counter() - start
+    jax.block_until_ready(run(state))  # warm-up
+    return config.batch_size * num_updates / best_of(lambda: run(state), repeats), compile_seconds
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="cartpole")
+    parser.add_argument("--num-envs", type=int, default=1024)
+    parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
+    parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--json", type=Path, help="write the results here")
+    args = parser.parse_args()
+    if args.env not in envs.REGISTRY:
+        print(f"error: unknown env {args.env!r}; valid names: {', '.join(envs.REGISTRY)}", file=sys.stderr)
+        return 2
+
+    env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
+    train_sps, compile_seconds = train_steps_per_second(args.env, args.num_envs, args.train_updates, args.repeats)
+    device = jax.devices()[0]
+    result = {
+        "env": args.env,
+        "num_envs": args.num_envs,
+        "env_sps": env_sps,
+        "train_sps": train_sps,
+        "train_to_env_ratio": train_sps / env_sps,
+        "compile_seconds": compile_seconds,
+        "device": f"{device.platform}:{device.device_kind}",
+        "jax": jax.__version__,
+    }
+    print(f"{'env':<12}{'num_envs':>10}{'env_sps':>14}{'train_sps':>14}{'compile_s':>11}  device")
+    print(
+        f"{args.env:<12}{args.num_envs:>10}{env_sps:>14,.0f}{train_sps:>14,.0f}"
+        f"{compile_seconds:>11.1f}  {result['device']}"
+    )
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

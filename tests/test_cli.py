@@ -1,0 +1,126 @@
+"""The command line end to end on a tiny run, and its handling of bad input."""
+
+import json
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import serialization
+
+from rpo_jax import envs, load_policy, ppo
+from rpo_jax.networks import policy_distribution
+from rpo_jax.policy import PARAMS_FILE
+from rpo_jax.train import chunk_length, final_return
+
+TINY = [
+    "--env", "cartpole", "--algo", "rpo", "--num-envs", "8", "--num-steps", "16",
+    "--num-minibatches", "2", "--update-epochs", "2", "--total-timesteps", "1280",
+    "--num-seeds", "2", "--seed", "3", "--quiet",
+]  # fmt: skip
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rpo_jax.train", *args], capture_output=True, text=True, timeout=600
+    )
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "run"
+    result = run_cli(*TINY, "--out", str(out), "--log-every", "3")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_every_output_file_is_written_and_valid(run_dir):
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["env"] == "cartpole" and config["algo"] == "rpo" and config["seeds"] == [3, 4]
+    assert config["config"]["rpo_alpha"] == 0.5 and config["config"]["num_envs"] == 8
+    ppo.Config(**{**config["config"], "hidden_sizes": tuple(config["config"]["hidden_sizes"])}).validate()
+
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    num_updates = 1280 // (8 * 16)
+    logged_updates = [3, 6, 9, 10]  # every 3rd update and always the last
+    assert [r["update"] for r in rows] == [u for u in logged_updates for _ in (3, 4)]
+    assert {r["seed"] for r in rows} == {3, 4}
+    for row in rows:
+        for field in ("env_steps", "episode_return", "policy_entropy", "sps", "approx_kl", "learning_rate"):
+            assert np.isfinite(row[field]), (field, row)
+        assert row["env_steps"] == row["update"] * 8 * 16
+
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["env"] == "cartpole" and summary["algo"] == "rpo" and summary["num_seeds"] == 2
+    assert summary["total_timesteps"] == num_updates * 8 * 16
+    per_seed = [final_return([r["episode_return"] for r in rows if r["seed"] == s]) for s in (3, 4)]
+    assert summary["final_return_mean"] == pytest.approx(np.mean(per_seed))
+    assert summary["final_return_std"] == pytest.approx(np.std(per_seed))
+    for field in ("compile_seconds", "train_seconds", "sps"):
+        assert summary[field] > 0
+
+    event_files = list((run_dir / "tensorboard").glob("seed_*/events.out.tfevents.*"))
+    assert len(event_files) == 2 and all(f.stat().st_size > 0 for f in event_files)
+
+
+def test_load_policy_acts_like_the_trained_parameters(run_dir):
+    saved = serialization.msgpack_restore((run_dir / PARAMS_FILE).read_bytes())
+    seed_index = 1
+    actor_params = jax.tree.map(lambda x: jnp.asarray(x[seed_index]), saved["params"]["actor"])
+    stats = envs.RunningMeanStd(**{k: jnp.asarray(v[seed_index]) for k, v in saved["obs_stats"].items()})
+    assert float(stats.count) > 1  # the normaliser's statistics were saved, not the initial ones
+    config = ppo.Config(num_envs=8, num_steps=16, num_minibatches=2)
+    actor, _ = ppo.make_networks(config, 1)
+
+    obs = jax.random.normal(jax.random.PRNGKey(0), (16, 4)) * 2
+    key = jax.random.PRNGKey(1)
+    normalized = envs.normalize_observation(obs, stats, config.obs_clip)
+    loc, log_scale = actor.apply(actor_params, normalized)
+    expected_sample = jnp.clip(policy_distribution(loc, log_scale).sample(seed=key), -1, 1)
+
+    policy = load_policy(run_dir, seed_index=seed_index)
+    # The policy is jitted and this reference is not: XLA's fusion may round the last bit.
+    np.testing.assert_allclose(policy(obs, key), expected_sample, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(policy(obs, key, deterministic=True), jnp.clip(loc, -1, 1), rtol=1e-6, atol=1e-6)
+    single = policy(obs[0], key, deterministic=True)
+    assert single.shape == (1,)
+
+
+def test_existing_output_directory_is_refused_and_kept(run_dir):
+    before = (run_dir / "summary.json").read_text()
+    result = run_cli(*TINY, "--out", str(run_dir))
+    assert result.returncode == 2
+    assert "already exists" in result.stderr and "Traceback" not in result.stderr
+    assert (run_dir / "summary.json").read_text() == before
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--env", "nope"], "valid names: cartpole"),
+        (["--algo", "sac"], "invalid choice"),
+        (["--num-minibatches", "7"], "num_minibatches"),
+        (["--rpo-alpha", "-1"], "rpo_alpha"),
+        (["--gamma", "1.5"], "gamma"),
+        (["--total-timesteps", "10"], "total_timesteps"),
+        (["--algo", "ppo", "--rpo-alpha", "0.5"], "--rpo-alpha"),
+        (["--num-envs", "abc"], "--num-envs"),
+        (["--preset", "fast"], "invalid choice"),
+        (["--num-seeds", "0"], "--num-seeds"),
+    ],
+)
+def test_bad_arguments_exit_2_with_one_line(tmp_path, args, message):
+    result = run_cli(*args, "--out", str(tmp_path / "never"), "--quiet")
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not (tmp_path / "never").exists()
+
+
+def test_chunks_divide_the_run_so_it_compiles_once():
+    for num_updates in (1, 7, 244, 1525, 1000):
+        chunk = chunk_length(num_updates)
+        assert num_updates % chunk == 0 and chunk <= max(1, num_updates // 50)
