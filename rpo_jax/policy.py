@@ -16,22 +16,23 @@ from rpo_jax.networks import policy_distribution
 PARAMS_FILE = "params.msgpack"
 
 
-def load_policy(run_dir: str | Path, seed_index: int = 0) -> Callable[..., jax.Array]:
+def load_policy(run_dir: str | Path, run: int = 0) -> Callable[..., jax.Array]:
     """Returns a jitted `policy(obs, key, deterministic=False) -> action`.
 
     `obs` is a raw observation [obs_size] or a batch [B, obs_size]; the saved normaliser
     statistics are applied as in training. The action is sampled from the policy (its mean
-    when `deterministic`) and clipped to the environment's bounds, as the environment would.
-    `seed_index` picks one of the seeds trained together in that run."""
+    when `deterministic`; for Gumbel and Laplace policies, the location) and clipped to the
+    environment's bounds, as the environment would. `run` indexes the runs (seeds x sweep
+    points) trained together, as listed in config.json."""
     run_dir = Path(run_dir)
-    run = json.loads((run_dir / "config.json").read_text())
-    config = ppo.Config(**{**run["config"], "hidden_sizes": tuple(run["config"]["hidden_sizes"])})
-    spec = run["env_spec"]
-    if not 0 <= seed_index < len(run["seeds"]):
-        raise ValueError(f"seed_index must be in [0, {len(run['seeds'])}), got {seed_index}")
+    saved_run = json.loads((run_dir / "config.json").read_text())
+    config = ppo.Config(**{**saved_run["config"], "hidden_sizes": tuple(saved_run["config"]["hidden_sizes"])})
+    spec = saved_run["env_spec"]
+    if not 0 <= run < len(saved_run["runs"]):
+        raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")
     saved = serialization.msgpack_restore((run_dir / PARAMS_FILE).read_bytes())
-    actor_params = jax.tree.map(lambda x: jnp.asarray(x[seed_index]), saved["params"]["actor"])
-    stats = envs.RunningMeanStd(**{k: jnp.asarray(v[seed_index]) for k, v in saved["obs_stats"].items()})
+    actor_params = jax.tree.map(lambda x: jnp.asarray(x[run]), saved["params"]["actor"])
+    stats = envs.RunningMeanStd(**{k: jnp.asarray(v[run]) for k, v in saved["obs_stats"].items()})
     actor, _ = ppo.make_networks(config, spec["action_size"])
     low, high = jnp.asarray(spec["action_low"]), jnp.asarray(spec["action_high"])
 
@@ -39,7 +40,7 @@ def load_policy(run_dir: str | Path, seed_index: int = 0) -> Callable[..., jax.A
         if config.normalize_obs:
             obs = envs.normalize_observation(obs, stats, config.obs_clip)
         loc, log_scale = actor.apply(actor_params, obs)
-        action = loc if deterministic else policy_distribution(loc, log_scale).sample(seed=key)
+        action = loc if deterministic else policy_distribution(loc, log_scale, config.dist).sample(seed=key)
         return jnp.clip(action, low, high)
 
     return jax.jit(policy, static_argnames="deterministic")

@@ -21,7 +21,7 @@ import optax
 from flax import struct
 
 from rpo_jax import envs
-from rpo_jax.networks import Actor, Critic, perturb_location, policy_distribution
+from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, Actor, Critic, perturb_location, policy_distribution
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,7 +29,7 @@ class Config:
     """Hyperparameters of one training run. The defaults are a CPU-sized Cartpole run."""
 
     total_timesteps: int = 1_000_000
-    """environment steps over all parallel environments"""
+    """environment steps per run over all parallel environments (rounded down to whole batches)"""
     num_envs: int = 64
     """parallel environments in the rollout"""
     num_steps: int = 32
@@ -64,6 +64,16 @@ class Config:
     """normalise advantages per minibatch"""
     rpo_alpha: float = 0.0
     """RPO: half-width of the uniform perturbation of the policy location; 0 is PPO"""
+    dist: str = "gaussian"
+    """action distribution: gaussian, laplace or gumbel (state-dependent location, free log-scale)"""
+    augmentation: str = "none"
+    """'none', 'rad' (train on amplitude-scaled observations) or 'drac' (regularise towards them)"""
+    aug_low: float = 0.6
+    """lower bound of the amplitude-scaling factor of RAD and DrAC"""
+    aug_high: float = 1.2
+    """upper bound of the amplitude-scaling factor of RAD and DrAC"""
+    drac_coef: float = 0.1
+    """weight of DrAC's policy-KL and value regularisers"""
     hidden_sizes: tuple[int, ...] = (64, 64)
     """hidden layer sizes of both the actor and the critic"""
     activation: str = "tanh"
@@ -102,7 +112,7 @@ class Config:
         for name in ("gamma", "gae_lambda"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
-        for name in ("rpo_alpha", "ent_coef", "vf_coef"):
+        for name in ("rpo_alpha", "ent_coef", "vf_coef", "drac_coef"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.reward_scale > 0:
@@ -124,15 +134,42 @@ class Config:
             )
         if not self.hidden_sizes or min(self.hidden_sizes) <= 0:
             raise ValueError(f"hidden_sizes must be positive integers, got {self.hidden_sizes}")
-        if self.activation not in ACTIVATION_NAMES:
-            raise ValueError(f"activation must be one of {', '.join(ACTIVATION_NAMES)}, got {self.activation!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
+        if self.dist not in DISTRIBUTIONS:
+            raise ValueError(f"dist must be one of {', '.join(DISTRIBUTIONS)}, got {self.dist!r}")
+        if self.augmentation not in AUGMENTATIONS:
+            raise ValueError(f"augmentation must be one of {', '.join(AUGMENTATIONS)}, got {self.augmentation!r}")
+        if not 0 < self.aug_low <= self.aug_high:
+            raise ValueError(
+                f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {self.aug_low}, {self.aug_high}"
+            )
         return self
 
 
-ACTIVATION_NAMES = ("tanh", "relu", "elu", "silu")
 LR_SCHEDULES = ("linear", "constant", "adaptive")
+AUGMENTATIONS = ("none", "rad", "drac")
+
+
+@struct.dataclass
+class Hyperparams:
+    """The continuous hyperparameters a sweep may vary. They live in the training state as
+    arrays, so `jax.vmap` over a batch of them (and of keys) trains a whole grid in one
+    program. Each leaf is [] for one run, [R] for a batch of runs."""
+
+    rpo_alpha: jax.Array
+    ent_coef: jax.Array
+    lr: jax.Array
+    drac_coef: jax.Array
+
+    @classmethod
+    def from_config(cls, config: "Config") -> "Hyperparams":
+        return cls(*(jnp.asarray(getattr(config, name), jnp.float32) for name in SWEEPABLE))
+
+
+SWEEPABLE = tuple(Hyperparams.__dataclass_fields__)
 
 PRESETS: dict[str, Config] = {
     # CleanRL's ppo_continuous_action / rpo_continuous_action, as in the paper.
@@ -207,23 +244,47 @@ class LossMetrics:
     clip_fraction: jax.Array
 
 
+def amplitude_scale(obs: jax.Array, key: jax.Array, low: float, high: float) -> jax.Array:
+    """RAD's random amplitude scaling s' = s * u, u ~ U(low, high). obs: [B, obs_size].
+
+    u is drawn per sample and per observation dimension. A single factor per sample would
+    keep every ratio between state features, and the features of a proprioceptive state
+    (positions, velocities, forces) have unrelated units, so scaling them independently is
+    the perturbation of the state's amplitudes that the augmentation is meant to be robust to."""
+    return obs * jax.random.uniform(key, obs.shape, obs.dtype, minval=low, maxval=high)
+
+
 def ppo_loss(
-    params: dict, actor: Actor, critic: Critic, batch: Batch, perturb_key: jax.Array, config: Config
+    params: dict,
+    actor: Actor,
+    critic: Critic,
+    batch: Batch,
+    key: jax.Array,
+    config: Config,
+    hparams: Hyperparams | None = None,
 ) -> tuple[jax.Array, LossMetrics]:
     """Clipped-surrogate PPO loss on one minibatch [B]; with rpo_alpha > 0, the RPO loss.
 
     The policy location is perturbed (RPO) before the log-probability and entropy of the
-    stored actions are taken. `approx_kl` measures how far the unperturbed policy moved from
-    the rollout policy: the perturbation alone would add about alpha^2 / (6 sigma^2) to it and
-    starve the adaptive learning-rate schedule. Returns the scalar loss and its parts."""
-    loc, log_scale = actor.apply(params["actor"], batch.obs)
-    dist = policy_distribution(perturb_location(loc, perturb_key, config.rpo_alpha), log_scale)
+    stored actions are taken. With `augmentation='rad'` the policy and value see amplitude-
+    scaled observations; with 'drac' they see the originals and DrAC's regularisers pull the
+    outputs on scaled observations towards them. `approx_kl` measures how far the unperturbed
+    policy moved from the rollout policy: the perturbation alone would add about
+    alpha^2 / (6 sigma^2) to it and starve the adaptive learning-rate schedule.
+    `hparams` defaults to the config's values. Returns the scalar loss and its parts."""
+    hparams = Hyperparams.from_config(config) if hparams is None else hparams
+    perturb_key, augment_key = jax.random.split(key)
+    obs = batch.obs
+    if config.augmentation == "rad":
+        obs = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
+    loc, log_scale = actor.apply(params["actor"], obs)
+    dist = policy_distribution(perturb_location(loc, perturb_key, hparams.rpo_alpha), log_scale, config.dist)
     log_probs = dist.log_prob(batch.actions)
     entropy = dist.entropy().mean()
 
     ratio = jnp.exp(log_probs - batch.log_probs)
     unperturbed_log_ratio = jax.lax.stop_gradient(
-        policy_distribution(loc, log_scale).log_prob(batch.actions) - batch.log_probs
+        policy_distribution(loc, log_scale, config.dist).log_prob(batch.actions) - batch.log_probs
     )
     advantages = batch.advantages
     if config.norm_adv:
@@ -232,14 +293,23 @@ def ppo_loss(
         -advantages * ratio, -advantages * jnp.clip(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
     ).mean()
 
-    values = critic.apply(params["critic"], batch.obs)
+    values = critic.apply(params["critic"], obs)
     value_error = (values - batch.returns) ** 2
     if config.clip_value_loss:
         clipped = batch.values + jnp.clip(values - batch.values, -config.clip_coef, config.clip_coef)
         value_error = jnp.maximum(value_error, (clipped - batch.returns) ** 2)
     value_loss = 0.5 * value_error.mean()
 
-    loss = policy_loss - config.ent_coef * entropy + config.vf_coef * value_loss
+    loss = policy_loss - hparams.ent_coef * entropy + config.vf_coef * value_loss
+    if config.augmentation == "drac":
+        augmented = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
+        aug_loc, aug_log_scale = actor.apply(params["actor"], augmented)
+        # DrAC holds the outputs on the original observation fixed and moves those on the
+        # augmented one towards them.
+        target = policy_distribution(*jax.lax.stop_gradient((loc, log_scale)), config.dist)
+        policy_regulariser = target.kl_divergence(policy_distribution(aug_loc, aug_log_scale, config.dist)).mean()
+        value_regulariser = ((jax.lax.stop_gradient(values) - critic.apply(params["critic"], augmented)) ** 2).mean()
+        loss = loss + hparams.drac_coef * (policy_regulariser + value_regulariser)
     metrics = LossMetrics(
         policy_loss=policy_loss,
         value_loss=value_loss,
@@ -262,6 +332,7 @@ class TrainState:
     obs: jax.Array  # [N, obs_size] normalised observation to act on
     key: jax.Array
     update: jax.Array  # [] updates done
+    hparams: Hyperparams
     last_episode_return: jax.Array  # [] carried forward through updates that finish no episode
     last_episode_length: jax.Array
 
@@ -297,10 +368,14 @@ class Transition:
 
 
 def wrap_for_training(env: envs.Env, config: Config) -> envs.Env:
-    """The batched environment the trainer steps. The observation normaliser is outermost so
-    that its statistics sit at `env_state.obs_stats`, where checkpoints and policies read them."""
-    vec = env if hasattr(env, "num_envs") else envs.VectorEnv(env, config.num_envs)
-    vec = envs.EpisodeStatistics(vec)
+    """The batched environment the trainer steps: `env` itself if it is already batched (it
+    has `num_envs`), else `config.num_envs` vmapped copies. The observation normaliser is
+    outermost so that its statistics sit at `env_state.obs_stats`, where saved policies read them."""
+    if not hasattr(env, "num_envs"):
+        env = envs.VectorEnv(env, config.num_envs)
+    elif env.num_envs != config.num_envs:
+        raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {config.num_envs}")
+    vec = envs.EpisodeStatistics(env)
     vec = envs.ClipAction(vec)
     vec = envs.NormalizeReward(vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward)
     return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs)
@@ -336,7 +411,7 @@ class Trainer:
     chunks the same length, so it compiles once) to report progress between chunks."""
 
     config: Config
-    init: Callable[[jax.Array], TrainState]
+    init: Callable[..., TrainState]
     update: Callable[[TrainState], tuple[TrainState, Metrics]]
 
     def run(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
@@ -351,20 +426,22 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
     optimizer = make_optimizer(config)
     num_updates = config.num_updates
 
-    def init(key: jax.Array) -> TrainState:
+    def init(key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
+        hparams = Hyperparams.from_config(config) if hparams is None else hparams
         key, actor_key, critic_key, env_key = jax.random.split(key, 4)
         dummy_obs = jnp.zeros((spec.observation_size,))
         params = {"actor": actor.init(actor_key, dummy_obs), "critic": critic.init(critic_key, dummy_obs)}
         env_state, ts = train_env.reset(env_key)
         zero = jnp.zeros(())
+        opt_state = set_learning_rate(optimizer.init(params), hparams.lr)
         return TrainState(
-            params, optimizer.init(params), env_state, ts.obs, key, jnp.zeros((), jnp.int32), zero, zero
+            params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams, zero, zero
         )
 
     def rollout_step(params, carry, key):
         env_state, obs = carry
         loc, log_scale = actor.apply(params["actor"], obs)
-        action, log_prob = policy_distribution(loc, log_scale).sample_and_log_prob(seed=key)
+        action, log_prob = policy_distribution(loc, log_scale, config.dist).sample_and_log_prob(seed=key)
         env_state, ts = train_env.step(env_state, action)
         transition = Transition(
             obs, ts.final_obs, action, log_prob, ts.reward, ts.terminated, ts.truncated,
@@ -372,10 +449,10 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
         )  # fmt: skip
         return (env_state, ts.obs), transition
 
-    def minibatch_step(carry, inputs):
+    def minibatch_step(hparams, carry, inputs):
         params, opt_state = carry
-        batch, perturb_key = inputs
-        grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, actor, critic, batch, perturb_key, config)
+        batch, loss_key = inputs
+        grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, actor, critic, batch, loss_key, config, hparams)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         params = optax.apply_updates(params, updates)
         if config.lr_schedule == "adaptive":
@@ -385,23 +462,25 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
             opt_state = set_learning_rate(opt_state, lr)
         return (params, opt_state), metrics
 
-    def epoch(carry, key):
+    def epoch(hparams, carry, key):
         batch, params, opt_state = carry
-        permute_key, perturb_key = jax.random.split(key)
+        permute_key, loss_key = jax.random.split(key)
         permutation = jax.random.permutation(permute_key, config.batch_size)
         minibatches = jax.tree.map(
             lambda x: x[permutation].reshape(config.num_minibatches, config.minibatch_size, *x.shape[1:]),
             batch,
         )
-        perturb_keys = jax.random.split(perturb_key, config.num_minibatches)
-        (params, opt_state), metrics = jax.lax.scan(minibatch_step, (params, opt_state), (minibatches, perturb_keys))
+        loss_keys = jax.random.split(loss_key, config.num_minibatches)
+        (params, opt_state), metrics = jax.lax.scan(
+            functools.partial(minibatch_step, hparams), (params, opt_state), (minibatches, loss_keys)
+        )
         return (batch, params, opt_state), metrics
 
     def update(state: TrainState) -> tuple[TrainState, Metrics]:
         key, rollout_key, epochs_key = jax.random.split(state.key, 3)
         opt_state = state.opt_state
         if config.lr_schedule == "linear":
-            opt_state = set_learning_rate(opt_state, config.lr * (1.0 - state.update / num_updates))
+            opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / num_updates))
         learning_rate = opt_state.hyperparams["learning_rate"]
 
         params = state.params
@@ -421,7 +500,9 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
             Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
         )
         (_, params, opt_state), loss_metrics = jax.lax.scan(
-            epoch, (batch, params, opt_state), jax.random.split(epochs_key, config.update_epochs)
+            functools.partial(epoch, state.hparams),
+            (batch, params, opt_state),
+            jax.random.split(epochs_key, config.update_epochs),
         )
 
         done = traj.terminated | traj.truncated
@@ -442,18 +523,20 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
             **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
         )
         new_state = TrainState(
-            params, opt_state, env_state, obs, key, update_count, episode_return, episode_length
+            params, opt_state, env_state, obs, key, update_count, state.hparams, episode_return, episode_length
         )
         return new_state, metrics
 
     return Trainer(config, init, update)
 
 
-def make_train(config: Config, env: envs.Env) -> Callable[[jax.Array], tuple[TrainState, Metrics]]:
-    """`train(key) -> (final state, per-update metrics)`: the whole run, jittable and vmappable."""
+def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
+    """`train(key, hparams=None) -> (final state, per-update metrics)`: the whole run,
+    jittable and vmappable. `jax.vmap(train)(keys, hparams)` with [R]-leaved `Hyperparams`
+    trains a sweep of R runs (grid points x seeds) in one program."""
     trainer = make_trainer(config, env)
 
-    def train(key: jax.Array) -> tuple[TrainState, Metrics]:
-        return trainer.run(trainer.init(key), config.num_updates)
+    def train(key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
+        return trainer.run(trainer.init(key, hparams), config.num_updates)
 
     return train

@@ -2,6 +2,7 @@
 
     python -m rpo_jax.train --env cartpole --num-envs 4096
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
+    python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
 
 Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
 parameters (see `rpo_jax.load_policy`) to --out.
@@ -13,6 +14,7 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import itertools
 import json
 import math
 import os
@@ -29,8 +31,12 @@ from flax import serialization
 from rpo_jax import envs, ppo
 from rpo_jax.policy import PARAMS_FILE
 
-ALGOS = ("ppo", "rpo")
+ALGOS = ("ppo", "rpo", "rad", "drac")
 DEFAULT_RPO_ALPHA = 0.5
+# Which algorithm each sweepable hyperparameter belongs to (None: all of them).
+SWEEP_OWNERS = {"rpo_alpha": "rpo", "drac_coef": "drac", "ent_coef": None, "lr": None}
+# --algo sets these; they are not flags of their own.
+ALGO_FIELDS = ("augmentation",)
 
 
 class UsageError(Exception):
@@ -61,10 +67,17 @@ def build_parser() -> ArgumentParser:
     )
     run = parser.add_argument_group("run")
     run.add_argument("--env", default="cartpole", help="environment name (python -m rpo_jax.envs lists them)")
-    run.add_argument("--algo", default="rpo", choices=ALGOS, help="ppo, or rpo (ppo with the perturbed policy location)")
+    run.add_argument(
+        "--algo", default="rpo", choices=ALGOS,
+        help="ppo; rpo (perturbed policy location); rad or drac (ppo with amplitude-scaling augmentation)",
+    )  # fmt: skip
     run.add_argument("--preset", choices=sorted(ppo.PRESETS), help="start from a named config instead of the CPU defaults")
     run.add_argument("--seed", type=int, default=1, help="first seed; seed i of --num-seeds is seed + i")
     run.add_argument("--num-seeds", type=int, default=1, help="seeds trained together in one vmapped program")
+    run.add_argument(
+        "--sweep", action="append", default=[], metavar="NAME=V1,V2,...",
+        help=f"train every value (x every other sweep x seeds) in one program; NAME in {', '.join(ppo.SWEEPABLE)}",
+    )  # fmt: skip
     run.add_argument("--out", type=Path, help="output directory (default runs/<env>-<algo>-<timestamp>); must be new or empty")
     run.add_argument("--log-every", type=int, help="write metrics every N updates (default: about 100 lines per seed)")
     run.add_argument("--quiet", action="store_true", help="no progress display")
@@ -72,6 +85,8 @@ def build_parser() -> ArgumentParser:
     config = parser.add_argument_group("config")
     docs = _field_docs(ppo.Config)
     for field in dataclasses.fields(ppo.Config):
+        if field.name in ALGO_FIELDS:
+            continue
         flag = "--" + field.name.replace("_", "-")
         help_text = f"{docs.get(field.name, '')} (default {field.default})"
         if field.type == "bool":
@@ -87,18 +102,48 @@ def build_parser() -> ArgumentParser:
 def resolve_config(args: argparse.Namespace) -> ppo.Config:
     base = ppo.PRESETS[args.preset] if args.preset else ppo.Config()
     overrides = {
-        f.name: getattr(args, f.name) for f in dataclasses.fields(ppo.Config) if getattr(args, f.name) is not None
+        f.name: getattr(args, f.name)
+        for f in dataclasses.fields(ppo.Config)
+        if f.name not in ALGO_FIELDS and getattr(args, f.name) is not None
     }
     if "hidden_sizes" in overrides:
         overrides["hidden_sizes"] = tuple(overrides["hidden_sizes"])
-    if args.algo == "ppo" and overrides.get("rpo_alpha", 0.0) != 0.0:
-        raise UsageError("--rpo-alpha applies to --algo rpo only (ppo is rpo_alpha 0)")
+    if args.algo != "rpo" and overrides.get("rpo_alpha", 0.0) != 0.0:
+        raise UsageError(f"--rpo-alpha applies to --algo rpo only, not {args.algo}")
     if args.algo == "rpo":
         overrides.setdefault("rpo_alpha", DEFAULT_RPO_ALPHA)
+    if args.algo != "drac" and "drac_coef" in overrides:
+        raise UsageError(f"--drac-coef applies to --algo drac only, not {args.algo}")
+    overrides["augmentation"] = args.algo if args.algo in ("rad", "drac") else "none"
     try:
         return dataclasses.replace(base, **overrides).validate()
     except ValueError as error:
         raise UsageError(str(error)) from None
+
+
+def parse_sweeps(specs: Sequence[str], algo: str, config: ppo.Config) -> list[dict[str, float]]:
+    """The grid of hyperparameter values given by --sweep NAME=V1,V2 (a product over NAMEs)."""
+    axes: dict[str, list[float]] = {}
+    for spec in specs:
+        name, _, values = spec.partition("=")
+        if name not in ppo.SWEEPABLE:
+            raise UsageError(f"--sweep {spec}: unknown field {name!r}; sweepable: {', '.join(ppo.SWEEPABLE)}")
+        if name in axes:
+            raise UsageError(f"--sweep {name} is given twice; give all its values once")
+        owner = SWEEP_OWNERS[name]
+        if owner and owner != algo:
+            raise UsageError(f"--sweep {name} applies to --algo {owner} only, not {algo}")
+        try:
+            axes[name] = [float(v) for v in values.split(",")]
+        except ValueError:
+            raise UsageError(f"--sweep {spec}: values must be numbers separated by commas") from None
+    grid = [dict(zip(axes, point)) for point in itertools.product(*axes.values())]
+    for point in grid:
+        try:
+            dataclasses.replace(config, **point).validate()
+        except ValueError as error:
+            raise UsageError(f"--sweep: {error}") from None
+    return grid
 
 
 def prepare_out_dir(args: argparse.Namespace) -> Path:
@@ -164,24 +209,39 @@ class Progress:
             self.live.stop()
 
 
+def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
+    return "-".join([f"{name}={run['hparams'][name]:g}" for name in swept] + [f"seed_{run['seed']}"])
+
+
 def train(args: argparse.Namespace) -> dict[str, Any]:
     config = resolve_config(args)
     if args.num_seeds < 1:
         raise UsageError(f"--num-seeds must be >= 1, got {args.num_seeds}")
     if args.log_every is not None and args.log_every < 1:
         raise UsageError(f"--log-every must be >= 1, got {args.log_every}")
+    grid = parse_sweeps(args.sweep, args.algo, config)
+    swept = list(grid[0])
     try:
         env = envs.make_env(args.env)
     except ValueError as error:
         raise UsageError(str(error)) from None
     out = prepare_out_dir(args)
-    seeds = [args.seed + i for i in range(args.num_seeds)]
+
+    defaults = {name: float(getattr(config, name)) for name in ppo.SWEEPABLE}
+    runs = [
+        {"run": index, "seed": seed, "hparams": {**defaults, **point}}
+        for index, (point, seed) in enumerate(
+            (point, args.seed + i) for point in grid for i in range(args.num_seeds)
+        )
+    ]
     write_json(
         out / "config.json",
         {
             "env": args.env,
             "algo": args.algo,
-            "seeds": seeds,
+            "seeds": sorted({run["seed"] for run in runs}),
+            "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
+            "runs": runs,
             "config": dataclasses.asdict(config),
             "env_spec": dataclasses.asdict(env.spec),
             "versions": versions(),
@@ -192,18 +252,21 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     num_updates = config.num_updates
     chunk = chunk_length(num_updates)
     log_every = args.log_every or max(1, num_updates // 100)
-    keys = jax.vmap(jax.random.PRNGKey)(np.asarray(seeds))
+    keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
+    hparams = ppo.Hyperparams(
+        *(np.asarray([run["hparams"][name] for run in runs], np.float32) for name in ppo.SWEEPABLE)
+    )
 
     start = time.perf_counter()
-    init = jax.jit(jax.vmap(trainer.init)).lower(keys).compile()
-    state = init(keys)
+    init = jax.jit(jax.vmap(trainer.init)).lower(keys, hparams).compile()
+    state = init(keys, hparams)
     run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(state).compile()
     compile_seconds = time.perf_counter() - start
 
     from tensorboardX import SummaryWriter
 
-    writers = [SummaryWriter(str(out / "tensorboard" / f"seed_{seed}")) for seed in seeds]
-    logged_returns: list[list[float]] = [[] for _ in seeds]
+    writers = [SummaryWriter(str(out / "tensorboard" / run_label(run, swept))) for run in runs]
+    logged_returns: list[list[float]] = [[] for _ in runs]
     progress = Progress(num_updates * config.batch_size, args.quiet)
     train_start = time.perf_counter()
     with open(out / "metrics.jsonl", "w") as metrics_file:
@@ -212,21 +275,21 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             metrics = jax.device_get(metrics)
             elapsed = time.perf_counter() - train_start
             steps_done = (first_update + chunk) * config.batch_size
-            sps = steps_done * len(seeds) / elapsed
+            sps = steps_done * len(runs) / elapsed
             for offset in range(chunk):
                 update = first_update + offset + 1
                 if update % log_every and update != num_updates:
                     continue
-                for index, seed in enumerate(seeds):
-                    row = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
-                    row["env_steps"] = int(row["env_steps"])
-                    row["episodes_finished"] = int(row["episodes_finished"])
-                    row = {"seed": seed, "update": update, **row, "sps": sps}
+                for index, run in enumerate(runs):
+                    values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
+                    values["env_steps"] = int(values["env_steps"])
+                    values["episodes_finished"] = int(values["episodes_finished"])
+                    row = {"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps}
                     metrics_file.write(json.dumps(row) + "\n")
-                    logged_returns[index].append(row["episode_return"])
-                    for name, value in row.items():
-                        if name not in ("seed", "update", "env_steps"):
-                            writers[index].add_scalar(f"train/{name}", value, row["env_steps"])
+                    logged_returns[index].append(values["episode_return"])
+                    for name, value in values.items():
+                        if name != "env_steps":
+                            writers[index].add_scalar(f"train/{name}", value, values["env_steps"])
             metrics_file.flush()
             progress.update(
                 steps_done, sps, float(metrics.episode_return[:, -1].mean()), float(metrics.policy_entropy[:, -1].mean())
@@ -241,20 +304,35 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     tmp.write_bytes(serialization.msgpack_serialize(serialization.to_state_dict(params)))
     os.replace(tmp, out / PARAMS_FILE)
 
-    finals = [final_return(returns) for returns in logged_returns]
+    for run, returns in zip(runs, logged_returns):
+        run["final_return"] = final_return(returns)
+    grid_summary = []
+    for point in grid:
+        members = [run for run in runs if all(run["hparams"][k] == v for k, v in point.items())]
+        finals = [run["final_return"] for run in members]
+        grid_summary.append(
+            {
+                "hparams": point,
+                "seeds": [run["seed"] for run in members],
+                "final_return_mean": float(np.mean(finals)),
+                "final_return_std": float(np.std(finals)),
+            }
+        )
+    all_finals = [run["final_return"] for run in runs]
     env_steps = num_updates * config.batch_size
     summary = {
         "env": args.env,
         "algo": args.algo,
-        "num_seeds": len(seeds),
-        "seeds": seeds,
+        "dist": config.dist,
+        "num_seeds": args.num_seeds,
         "total_timesteps": env_steps,
-        "final_returns": finals,
-        "final_return_mean": float(np.mean(finals)),
-        "final_return_std": float(np.std(finals)),
+        "final_return_mean": float(np.mean(all_finals)),
+        "final_return_std": float(np.std(all_finals)),
+        "grid": grid_summary,
+        "runs": runs,
         "compile_seconds": compile_seconds,
         "train_seconds": train_seconds,
-        "sps": env_steps * len(seeds) / train_seconds,
+        "sps": env_steps * len(runs) / train_seconds,
         "device": str(jax.devices()[0].device_kind),
     }
     write_json(out / "summary.json", summary)
@@ -269,10 +347,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UsageError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    for point in summary["grid"]:
+        label = "".join(f" {k}={v:g}" for k, v in point["hparams"].items())
+        print(
+            f"{summary['env']} {summary['algo']}{label}: final return {point['final_return_mean']:.2f} "
+            f"± {point['final_return_std']:.2f} over {len(point['seeds'])} seed(s)"
+        )
     print(
-        f"{summary['env']} {summary['algo']}: final return {summary['final_return_mean']:.2f} "
-        f"± {summary['final_return_std']:.2f} over {summary['num_seeds']} seed(s), "
-        f"{summary['sps']:,.0f} steps/s, compile {summary['compile_seconds']:.1f}s -> {summary['out']}"
+        f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
+        f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"
     )
     return 0
 

@@ -80,7 +80,7 @@ def test_load_policy_acts_like_the_trained_parameters(run_dir):
     loc, log_scale = actor.apply(actor_params, normalized)
     expected_sample = jnp.clip(policy_distribution(loc, log_scale).sample(seed=key), -1, 1)
 
-    policy = load_policy(run_dir, seed_index=seed_index)
+    policy = load_policy(run_dir, run=seed_index)
     # The policy is jitted and this reference is not: XLA's fusion may round the last bit.
     np.testing.assert_allclose(policy(obs, key), expected_sample, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(policy(obs, key, deterministic=True), jnp.clip(loc, -1, 1), rtol=1e-6, atol=1e-6)
