@@ -228,18 +228,18 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     out = prepare_out_dir(args)
 
     defaults = {name: float(getattr(config, name)) for name in ppo.SWEEPABLE}
+    seeds = range(args.seed, args.seed + args.num_seeds)
+    # Point-major: the seeds of grid point i are runs[i * num_seeds : (i + 1) * num_seeds].
     runs = [
         {"run": index, "seed": seed, "hparams": {**defaults, **point}}
-        for index, (point, seed) in enumerate(
-            (point, args.seed + i) for point in grid for i in range(args.num_seeds)
-        )
+        for index, (point, seed) in enumerate(itertools.product(grid, seeds))
     ]
     write_json(
         out / "config.json",
         {
             "env": args.env,
             "algo": args.algo,
-            "seeds": sorted({run["seed"] for run in runs}),
+            "seeds": list(seeds),
             "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
             "runs": runs,
             "config": dataclasses.asdict(config),
@@ -254,7 +254,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     log_every = args.log_every or max(1, num_updates // 100)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
-        *(np.asarray([run["hparams"][name] for run in runs], np.float32) for name in ppo.SWEEPABLE)
+        **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in ppo.SWEEPABLE}
     )
 
     start = time.perf_counter()
@@ -307,13 +307,12 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     for run, returns in zip(runs, logged_returns):
         run["final_return"] = final_return(returns)
     grid_summary = []
-    for point in grid:
-        members = [run for run in runs if all(run["hparams"][k] == v for k, v in point.items())]
-        finals = [run["final_return"] for run in members]
+    for index, point in enumerate(grid):
+        finals = [run["final_return"] for run in runs[index * args.num_seeds : (index + 1) * args.num_seeds]]
         grid_summary.append(
             {
                 "hparams": point,
-                "seeds": [run["seed"] for run in members],
+                "seeds": list(seeds),
                 "final_return_mean": float(np.mean(finals)),
                 "final_return_std": float(np.std(finals)),
             }
