@@ -3,21 +3,25 @@
     python -m rpo_jax.train --env cartpole --num-envs 4096
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
     python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
+    python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
 
 Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
-parameters (see `rpo_jax.load_policy`) to --out.
+parameters (see `rpo_jax.load_policy`) to --out, and checkpoints (see `rpo_jax.checkpoint`)
+from which `--resume` continues an interrupted run exactly.
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import dataclasses
 import inspect
 import itertools
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from importlib import metadata
@@ -29,6 +33,8 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import envs, ppo
+from rpo_jax.cli import ArgumentParser, UsageError, write_json
+from rpo_jax.checkpoint import CheckpointMismatch, Checkpointer
 from rpo_jax.policy import PARAMS_FILE
 
 ALGOS = ("ppo", "rpo", "rad", "drac")
@@ -37,15 +43,13 @@ DEFAULT_RPO_ALPHA = 0.5
 SWEEP_OWNERS = {"rpo_alpha": "rpo", "drac_coef": "drac", "ent_coef": None, "lr": None}
 # --algo sets these; they are not flags of their own.
 ALGO_FIELDS = ("augmentation",)
+# Run flags default to None so that --resume can tell which ones were given; these apply otherwise.
+RUN_DEFAULTS = {"env": "cartpole", "algo": "rpo", "preset": None, "seed": 1, "num_seeds": 1, "sweep": []}
+CHECKPOINTS_PER_RUN = 10
 
 
-class UsageError(Exception):
-    """Bad input from the user: reported as one line with exit code 2."""
-
-
-class ArgumentParser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # argparse's default prints the whole usage too
-        raise UsageError(message)
+class Interrupted(Exception):
+    """Ctrl-C during training; carries the run directory to resume."""
 
 
 def _field_docs(cls: type) -> dict[str, str]:
@@ -66,20 +70,28 @@ def build_parser() -> ArgumentParser:
         description="Train PPO or RPO. Config flags override the preset's values.",
     )
     run = parser.add_argument_group("run")
-    run.add_argument("--env", default="cartpole", help="environment name (python -m rpo_jax.envs lists them)")
+    run.add_argument("--env", help="environment name (python -m rpo_jax.envs lists them; default cartpole)")
     run.add_argument(
-        "--algo", default="rpo", choices=ALGOS,
-        help="ppo; rpo (perturbed policy location); rad or drac (ppo with amplitude-scaling augmentation)",
+        "--algo", choices=ALGOS,
+        help="ppo; rpo (perturbed policy location, the default); rad or drac (ppo with amplitude-scaling augmentation)",
     )  # fmt: skip
     run.add_argument("--preset", choices=sorted(ppo.PRESETS), help="start from a named config instead of the CPU defaults")
-    run.add_argument("--seed", type=int, default=1, help="first seed; seed i of --num-seeds is seed + i")
-    run.add_argument("--num-seeds", type=int, default=1, help="seeds trained together in one vmapped program")
+    run.add_argument("--seed", type=int, help="first seed; seed i of --num-seeds is seed + i (default 1)")
+    run.add_argument("--num-seeds", type=int, help="seeds trained together in one vmapped program (default 1)")
     run.add_argument(
-        "--sweep", action="append", default=[], metavar="NAME=V1,V2,...",
+        "--sweep", action="append", metavar="NAME=V1,V2,...",
         help=f"train every value (x every other sweep x seeds) in one program; NAME in {', '.join(ppo.SWEEPABLE)}",
     )  # fmt: skip
     run.add_argument("--out", type=Path, help="output directory (default runs/<env>-<algo>-<timestamp>); must be new or empty")
     run.add_argument("--log-every", type=int, help="write metrics every N updates (default: about 100 lines per seed)")
+    run.add_argument(
+        "--checkpoint-every", type=int, metavar="STEPS",
+        help=f"checkpoint every STEPS environment steps per run (default: {CHECKPOINTS_PER_RUN} per run; 0: never)",
+    )  # fmt: skip
+    run.add_argument(
+        "--resume", type=Path, metavar="RUN_DIR",
+        help="continue the run in RUN_DIR from its last checkpoint (flags given with it must match the run's)",
+    )  # fmt: skip
     run.add_argument("--quiet", action="store_true", help="no progress display")
 
     config = parser.add_argument_group("config")
@@ -99,8 +111,8 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
-def resolve_config(args: argparse.Namespace) -> ppo.Config:
-    base = ppo.PRESETS[args.preset] if args.preset else ppo.Config()
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The config fields given as flags on the command line."""
     overrides = {
         f.name: getattr(args, f.name)
         for f in dataclasses.fields(ppo.Config)
@@ -108,6 +120,12 @@ def resolve_config(args: argparse.Namespace) -> ppo.Config:
     }
     if "hidden_sizes" in overrides:
         overrides["hidden_sizes"] = tuple(overrides["hidden_sizes"])
+    return overrides
+
+
+def resolve_config(args: argparse.Namespace) -> ppo.Config:
+    base = ppo.PRESETS[args.preset] if args.preset else ppo.Config()
+    overrides = config_overrides(args)
     if args.algo != "rpo" and overrides.get("rpo_alpha", 0.0) != 0.0:
         raise UsageError(f"--rpo-alpha applies to --algo rpo only, not {args.algo}")
     if args.algo == "rpo":
@@ -144,21 +162,6 @@ def parse_sweeps(specs: Sequence[str], algo: str, config: ppo.Config) -> list[di
         except ValueError as error:
             raise UsageError(f"--sweep: {error}") from None
     return grid
-
-
-def prepare_out_dir(args: argparse.Namespace) -> Path:
-    out = args.out or Path("runs") / f"{args.env.replace('/', '_')}-{args.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one")
-    out.mkdir(parents=True, exist_ok=True)
-    return out
-
-
-def write_json(path: Path, payload: Any) -> None:
-    """Writes through a temporary file so a crash never leaves half a file."""
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2) + "\n")
-    os.replace(tmp, path)
 
 
 def chunk_length(num_updates: int, target_chunks: int = 50) -> int:
@@ -213,72 +216,188 @@ def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
     return "-".join([f"{name}={run['hparams'][name]:g}" for name in swept] + [f"seed_{run['seed']}"])
 
 
-def train(args: argparse.Namespace) -> dict[str, Any]:
+@dataclasses.dataclass(frozen=True)
+class RunPlan:
+    """Everything that defines a training run; config.json records it and --resume reads it back."""
+
+    out: Path
+    env: str
+    algo: str
+    preset: str | None
+    seed: int
+    num_seeds: int
+    sweep: tuple[str, ...]
+    config: ppo.Config
+    log_every: int
+    checkpoint_every: int  # env steps per run between checkpoints; 0: none
+    resuming: bool
+
+    @property
+    def seeds(self) -> range:
+        return range(self.seed, self.seed + self.num_seeds)
+
+
+def plan_new_run(args: argparse.Namespace) -> RunPlan:
+    run_args = {name: default if getattr(args, name) is None else getattr(args, name) for name, default in RUN_DEFAULTS.items()}
+    args = argparse.Namespace(**{**vars(args), **run_args})
     config = resolve_config(args)
     if args.num_seeds < 1:
         raise UsageError(f"--num-seeds must be >= 1, got {args.num_seeds}")
     if args.log_every is not None and args.log_every < 1:
         raise UsageError(f"--log-every must be >= 1, got {args.log_every}")
-    grid = parse_sweeps(args.sweep, args.algo, config)
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {args.checkpoint_every}")
+    out = args.out or Path("runs") / f"{args.env.replace('/', '_')}-{args.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
+    run_steps = config.num_updates * config.batch_size
+    return RunPlan(
+        out=out,
+        env=args.env,
+        algo=args.algo,
+        preset=args.preset,
+        seed=args.seed,
+        num_seeds=args.num_seeds,
+        sweep=tuple(args.sweep),
+        config=config,
+        log_every=args.log_every or max(1, config.num_updates // 100),
+        checkpoint_every=run_steps // CHECKPOINTS_PER_RUN if args.checkpoint_every is None else args.checkpoint_every,
+        resuming=False,
+    )
+
+
+def plan_resumed_run(args: argparse.Namespace) -> RunPlan:
+    """The plan saved in `--resume`'s config.json. Flags given alongside must agree with it."""
+    out = args.resume
+    if not (out / "config.json").is_file():
+        raise UsageError(f"--resume {out}: no config.json there; give a directory written by rpo_jax.train")
+    if (out / "summary.json").exists():
+        raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
+    if args.out is not None and args.out.resolve() != out.resolve():
+        raise UsageError(f"--out {args.out} differs from --resume {out}; a resumed run continues in its own directory")
+    saved = json.loads((out / "config.json").read_text())
+    plan = saved["plan"]
+    config = ppo.Config(**{**saved["config"], "hidden_sizes": tuple(saved["config"]["hidden_sizes"])})
+    given = {name: getattr(args, name) for name in RUN_DEFAULTS if getattr(args, name) is not None}
+    given |= {name: getattr(args, name) for name in ("log_every", "checkpoint_every") if getattr(args, name) is not None}
+    saved_values = {**plan, **dataclasses.asdict(config)}
+    for name, value in {**given, **config_overrides(args)}.items():
+        saved_value = saved_values[name]
+        if isinstance(value, (tuple, list)):
+            value, saved_value = list(value), list(saved_value)
+        if value != saved_value:
+            flag = "--" + name.replace("_", "-")
+            raise UsageError(f"--resume {out}: the run was made with {flag} {saved_value}, not {value}")
+    return RunPlan(
+        out=out, env=plan["env"], algo=plan["algo"], preset=plan["preset"], seed=plan["seed"],
+        num_seeds=plan["num_seeds"], sweep=tuple(plan["sweep"]), config=config, log_every=plan["log_every"],
+        checkpoint_every=plan["checkpoint_every"], resuming=True,
+    )  # fmt: skip
+
+
+@contextlib.contextmanager
+def _interruptible(out: Path):
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise Interrupted(out) from None
+
+
+def train(args: argparse.Namespace) -> dict[str, Any]:
+    plan = plan_resumed_run(args) if args.resume else plan_new_run(args)
+    config, out = plan.config, plan.out
+    grid = parse_sweeps(plan.sweep, plan.algo, config)
     swept = list(grid[0])
     try:
-        env = envs.make_env(args.env)
+        env = envs.make_env(plan.env)
     except ValueError as error:
         raise UsageError(str(error)) from None
-    out = prepare_out_dir(args)
 
     defaults = {name: float(getattr(config, name)) for name in ppo.SWEEPABLE}
-    seeds = range(args.seed, args.seed + args.num_seeds)
     # Point-major: the seeds of grid point i are runs[i * num_seeds : (i + 1) * num_seeds].
     runs = [
         {"run": index, "seed": seed, "hparams": {**defaults, **point}}
-        for index, (point, seed) in enumerate(itertools.product(grid, seeds))
+        for index, (point, seed) in enumerate(itertools.product(grid, plan.seeds))
     ]
-    write_json(
-        out / "config.json",
-        {
-            "env": args.env,
-            "algo": args.algo,
-            "seeds": list(seeds),
-            "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
-            "runs": runs,
-            "config": dataclasses.asdict(config),
-            "env_spec": dataclasses.asdict(env.spec),
-            "versions": versions(),
-        },
-    )
+    if not plan.resuming:
+        out.mkdir(parents=True, exist_ok=True)
+        plan_record = {name: getattr(plan, name) for name in ("env", "algo", "preset", "seed", "num_seeds", "log_every", "checkpoint_every")}
+        write_json(
+            out / "config.json",
+            {
+                "env": plan.env,
+                "algo": plan.algo,
+                "seeds": list(plan.seeds),
+                "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
+                "runs": runs,
+                "config": dataclasses.asdict(config),
+                "env_spec": dataclasses.asdict(env.spec),
+                "plan": {**plan_record, "sweep": list(plan.sweep)},
+                "versions": versions(),
+            },
+        )
 
     trainer = ppo.make_trainer(config, env)
     num_updates = config.num_updates
     chunk = chunk_length(num_updates)
-    log_every = args.log_every or max(1, num_updates // 100)
+    checkpoint_updates = math.ceil(plan.checkpoint_every / config.batch_size) if plan.checkpoint_every else 0
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in ppo.SWEEPABLE}
     )
+    abstract_state = jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
+    checkpointer = Checkpointer(out)
 
     start = time.perf_counter()
-    init = jax.jit(jax.vmap(trainer.init)).lower(keys, hparams).compile()
-    state = init(keys, hparams)
-    run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(state).compile()
+    run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(abstract_state).compile()
+    record = {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
+    if plan.resuming and checkpointer.latest_update() is not None:
+        try:
+            state, record = checkpointer.restore(abstract_state)
+        except CheckpointMismatch as error:
+            raise UsageError(f"--resume {out}: {error}") from None
+    else:
+        state = jax.jit(jax.vmap(trainer.init))(keys, hparams)
     compile_seconds = time.perf_counter() - start
+
+    # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
+    # the TensorBoard events from the metrics kept, so nothing is logged twice.
+    metrics_path = out / "metrics.jsonl"
+    with open(metrics_path, "a+b") as metrics_file:
+        metrics_file.truncate(record["metrics_bytes"])
+        metrics_file.seek(0)
+        kept_rows = [json.loads(line) for line in metrics_file.read().splitlines()]
+    shutil.rmtree(out / "tensorboard", ignore_errors=True)
 
     from tensorboardX import SummaryWriter
 
     writers = [SummaryWriter(str(out / "tensorboard" / run_label(run, swept))) for run in runs]
     logged_returns: list[list[float]] = [[] for _ in runs]
+
+    def log(row: dict[str, Any]) -> None:
+        logged_returns[row["run"]].append(row["episode_return"])
+        for name in ppo.Metrics.__dataclass_fields__:
+            if name != "env_steps":
+                writers[row["run"]].add_scalar(f"train/{name}", row[name], row["env_steps"])
+
+    for row in kept_rows:
+        log(row)
+
     progress = Progress(num_updates * config.batch_size, args.quiet)
-    train_start = time.perf_counter()
-    with open(out / "metrics.jsonl", "w") as metrics_file:
-        for first_update in range(0, num_updates, chunk):
+    train_start = time.perf_counter() - record["train_seconds"]
+    steps_before = record["update"] * config.batch_size
+    resumed_at = time.perf_counter()
+    last_checkpoint = record["update"]
+    with open(metrics_path, "a") as metrics_file, _interruptible(out):
+        for first_update in range(record["update"], num_updates, chunk):
             state, metrics = run_chunk(state)
             metrics = jax.device_get(metrics)
-            elapsed = time.perf_counter() - train_start
-            steps_done = (first_update + chunk) * config.batch_size
-            sps = steps_done * len(runs) / elapsed
+            updates_done = first_update + chunk
+            steps_done = updates_done * config.batch_size
+            sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
             for offset in range(chunk):
                 update = first_update + offset + 1
-                if update % log_every and update != num_updates:
+                if update % plan.log_every and update != num_updates:
                     continue
                 for index, run in enumerate(runs):
                     values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
@@ -286,16 +405,23 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                     values["episodes_finished"] = int(values["episodes_finished"])
                     row = {"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps}
                     metrics_file.write(json.dumps(row) + "\n")
-                    logged_returns[index].append(values["episode_return"])
-                    for name, value in values.items():
-                        if name != "env_steps":
-                            writers[index].add_scalar(f"train/{name}", value, values["env_steps"])
+                    log(row)
             metrics_file.flush()
+            if checkpoint_updates and updates_done < num_updates and updates_done - last_checkpoint >= checkpoint_updates:
+                os.fsync(metrics_file.fileno())
+                train_seconds = time.perf_counter() - train_start
+                checkpointer.save(
+                    updates_done,
+                    state,
+                    {"update": updates_done, "metrics_bytes": metrics_file.tell(), "train_seconds": train_seconds},
+                )
+                last_checkpoint = updates_done
             progress.update(
                 steps_done, sps, float(metrics.episode_return[:, -1].mean()), float(metrics.policy_entropy[:, -1].mean())
             )
     train_seconds = time.perf_counter() - train_start
     progress.close()
+    checkpointer.close()
     for writer in writers:
         writer.close()
 
@@ -308,11 +434,11 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         run["final_return"] = final_return(returns)
     grid_summary = []
     for index, point in enumerate(grid):
-        finals = [run["final_return"] for run in runs[index * args.num_seeds : (index + 1) * args.num_seeds]]
+        finals = [run["final_return"] for run in runs[index * plan.num_seeds : (index + 1) * plan.num_seeds]]
         grid_summary.append(
             {
                 "hparams": point,
-                "seeds": list(seeds),
+                "seeds": list(plan.seeds),
                 "final_return_mean": float(np.mean(finals)),
                 "final_return_std": float(np.std(finals)),
             }
@@ -320,10 +446,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     all_finals = [run["final_return"] for run in runs]
     env_steps = num_updates * config.batch_size
     summary = {
-        "env": args.env,
-        "algo": args.algo,
+        "env": plan.env,
+        "algo": plan.algo,
         "dist": config.dist,
-        "num_seeds": args.num_seeds,
+        "num_seeds": plan.num_seeds,
         "total_timesteps": env_steps,
         "final_return_mean": float(np.mean(all_finals)),
         "final_return_std": float(np.std(all_finals)),
@@ -346,6 +472,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UsageError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except Interrupted as interrupted:
+        print(f"interrupted; continue with: python -m rpo_jax.train --resume {interrupted}", file=sys.stderr)
+        return 130
     for point in summary["grid"]:
         label = "".join(f" {k}={v:g}" for k, v in point["hparams"].items())
         print(

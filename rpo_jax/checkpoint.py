@@ -1,0 +1,80 @@
+"""Checkpoints of a training run (all its seeds and sweep points at once), written with orbax.
+
+A checkpoint holds the whole batched `TrainState`: parameters, optimiser state, the
+environments' state with the observation and reward normalisers' statistics, the RNG keys,
+the update counters and the hyperparameters of every run. Next to it, a small JSON record
+says how far the run's log files had got, so a resumed run can cut them back to that point.
+
+orbax writes each checkpoint into a temporary directory and renames it when complete, so a
+process killed mid-write leaves the previous checkpoint as the latest one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+CHECKPOINT_DIR = "checkpoints"
+
+
+class CheckpointMismatch(ValueError):
+    """The saved state does not have the structure the current config builds."""
+
+
+def _layout(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
+    """Leaf name -> (shape, dtype), with orbax's dotted leaf names."""
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {
+        jax.tree_util.keystr(path, simple=True, separator="."): (tuple(leaf.shape), str(leaf.dtype))
+        for path, leaf in leaves
+    }
+
+
+class Checkpointer:
+    """Saves and restores the batched training state of one run directory, keeping the last two."""
+
+    def __init__(self, run_dir: Path) -> None:
+        options = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
+        # Handlers named up front so that a fresh process can read a checkpoint's metadata.
+        handlers = {"state": ocp.StandardCheckpointHandler(), "record": ocp.JsonCheckpointHandler()}
+        self.manager = ocp.CheckpointManager(
+            (Path(run_dir) / CHECKPOINT_DIR).absolute(), options=options, item_handlers=handlers
+        )
+
+    def latest_update(self) -> int | None:
+        return self.manager.latest_step()
+
+    def save(self, update: int, state: Any, record: dict[str, Any]) -> None:
+        self.manager.save(
+            update, args=ocp.args.Composite(state=ocp.args.StandardSave(state), record=ocp.args.JsonSave(record))
+        )
+        self.manager.wait_until_finished()
+
+    def restore(self, abstract_state: Any) -> tuple[Any, dict[str, Any]]:
+        """The latest checkpoint as (state, record). Refuses, before reading any array, a
+        checkpoint whose leaves differ in name, shape or dtype from `abstract_state`."""
+        update = self.manager.latest_step()
+        saved = self.manager.item_metadata(update)["state"]
+        saved_layout = {leaf.name: (tuple(leaf.shape), str(leaf.dtype)) for leaf in jax.tree.leaves(saved)}
+        wanted = _layout(abstract_state)
+        if saved_layout != wanted:
+            differences = sorted(
+                f"{name}: saved {saved_layout.get(name, 'nothing')}, config needs {wanted.get(name, 'nothing')}"
+                for name in saved_layout.keys() | wanted.keys()
+                if saved_layout.get(name) != wanted.get(name)
+            )
+            raise CheckpointMismatch(
+                f"checkpoint at update {update} does not match the config ({len(differences)} arrays differ, "
+                f"first: {differences[0]})"
+            )
+        restored = self.manager.restore(
+            update,
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state), record=ocp.args.JsonRestore()),
+        )
+        return restored.state, restored.record
+
+    def close(self) -> None:
+        self.manager.close()

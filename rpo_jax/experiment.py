@@ -1,0 +1,254 @@
+"""The paper's comparisons as named experiments: a grid of environments x variants x seeds.
+
+    python -m rpo_jax.experiment entropy-reg --envs cartpole --seeds 3 --timesteps 2000000
+    python -m rpo_jax.experiment ppo-vs-rpo --suite gym --seeds 3
+    python -m rpo_jax.experiment long-horizon --timesteps 20000000
+
+Each (environment, job) is one `rpo_jax.train` run: its seeds, and the values of a swept
+hyperparameter where a job has one, train together in one compiled program. Everything goes
+under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md` and
+`figures/` (see `rpo_jax.report`).
+
+Started again with the same command, an experiment skips the runs that finished and resumes
+the unfinished one from its last checkpoint, so a crash loses at most one checkpoint interval
+of one run (--checkpoint-every, by default a tenth of the run) and the compile time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from rpo_jax import envs, ppo, report, train
+from rpo_jax.cli import ArgumentParser, UsageError, write_json
+
+DMC_TASKS = (
+    "acrobot-swingup", "fish-swim", "hopper-hop", "humanoid-stand", "humanoid-run", "pendulum-swingup",
+    "quadruped-walk", "quadruped-run", "quadruped-escape", "walker-stand", "walker-walk", "walker-run",
+)  # fmt: skip
+SUITES: dict[str, tuple[str, ...]] = {
+    "dmc": tuple(f"dmc/{task}" for task in DMC_TASKS),
+    "gym": ("gym/Pendulum-v1", "gym/BipedalWalker-v3"),
+    "pybullet": ("pybullet/Ant", "pybullet/Minitaur"),
+    "isaacgym": ("cartpole", "ballbalance"),
+}
+SUITES["all"] = tuple(name for suite in SUITES.values() for name in suite)
+# The IsaacGym tasks were trained with rl_games' settings in the paper, everything else with CleanRL's.
+ISAACGYM_TASKS = SUITES["isaacgym"]
+
+ENTROPY_COEFS = (0.0, 0.01, 0.05, 0.5, 1.0, 10.0)
+RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Job:
+    """One training run per environment: `algo` with extra train flags, and optionally one
+    swept hyperparameter whose values become variants of their own."""
+
+    name: str
+    algo: str
+    flags: tuple[str, ...] = ()
+    sweep: tuple[str, tuple[float, ...]] | None = None
+
+    def train_args(self) -> list[str]:
+        args = ["--algo", self.algo, *self.flags]
+        if self.sweep:
+            name, values = self.sweep
+            args += ["--sweep", f"{name}={','.join(f'{v:g}' for v in values)}"]
+        return args
+
+    def variant(self, hparams: dict[str, float]) -> str:
+        """The label of a run of this job in results.csv and the report."""
+        if not self.sweep:
+            return self.name
+        return f"{self.name} {self.sweep[0]}={hparams[self.sweep[0]]:g}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    jobs: tuple[Job, ...]
+    default_suite: str
+    default_timesteps: int = 8_000_000
+
+
+PPO, RPO = Job("ppo", "ppo"), Job("rpo", "rpo")
+EXPERIMENTS: dict[str, Experiment] = {
+    "ppo-vs-rpo": Experiment((PPO, RPO), "all"),
+    "entropy-reg": Experiment((Job("ppo", "ppo", sweep=("ent_coef", ENTROPY_COEFS)), RPO), "dmc"),
+    "distributions": Experiment(
+        tuple(
+            Job(f"{algo}-{dist}", algo, ("--dist", dist))
+            for dist in ("gaussian", "laplace", "gumbel")
+            for algo in ("ppo", "rpo")
+        ),
+        "dmc",
+    ),
+    "data-aug": Experiment((PPO, Job("rad", "rad"), Job("drac", "drac"), RPO), "dmc"),
+    "alpha-ablation": Experiment((PPO, Job("rpo", "rpo", sweep=("rpo_alpha", RPO_ALPHAS))), "dmc"),
+    "long-horizon": Experiment((PPO, RPO), "isaacgym", default_timesteps=100_000_000),
+}
+
+
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(
+        prog="python -m rpo_jax.experiment",
+        description="Run one of the paper's comparisons and write results.csv, report.md and figures.",
+    )
+    parser.add_argument("name", choices=sorted(EXPERIMENTS), help="the experiment")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--suite", choices=sorted(SUITES), help="environment suite (default: the experiment's)")
+    where.add_argument("--envs", nargs="+", metavar="ENV", help="environment names instead of a suite")
+    parser.add_argument("--seeds", type=int, default=10, help="seeds per variant (default 10, as the paper)")
+    parser.add_argument(
+        "--timesteps", type=int,
+        help="environment steps per run (default 8M as the paper; 100M for long-horizon)",
+    )  # fmt: skip
+    parser.add_argument("--num-envs", type=int, help="parallel environments per run (default: the preset's)")
+    parser.add_argument(
+        "--preset", choices=sorted(ppo.PRESETS),
+        help="config for every environment (default: isaacgym for the IsaacGym tasks, paper for the rest)",
+    )  # fmt: skip
+    parser.add_argument("--checkpoint-every", type=int, metavar="STEPS", help="as for rpo_jax.train")
+    parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
+    parser.add_argument("--quiet", action="store_true", help="no progress display inside each run")
+    return parser
+
+
+def resolve(args: argparse.Namespace) -> dict:
+    """The experiment's full definition, as recorded in experiment.json."""
+    experiment = EXPERIMENTS[args.name]
+    env_names = list(args.envs or SUITES[args.suite or experiment.default_suite])
+    unknown = [name for name in env_names if name not in envs.REGISTRY]
+    if unknown:
+        raise UsageError(
+            f"unknown environment(s) {', '.join(unknown)}; python -m rpo_jax.envs lists the valid names"
+        )
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    for flag in ("timesteps", "num_envs"):
+        if getattr(args, flag) is not None and getattr(args, flag) < 1:
+            raise UsageError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    return {
+        "experiment": args.name,
+        "envs": env_names,
+        "seeds": args.seeds,
+        "timesteps": args.timesteps or experiment.default_timesteps,
+        "num_envs": args.num_envs,
+        "preset": args.preset,
+        "checkpoint_every": args.checkpoint_every,
+        "jobs": [dataclasses.asdict(job) for job in experiment.jobs],
+    }
+
+
+def run_dir(out: Path, env: str, job: Job) -> Path:
+    return out / "runs" / env.replace("/", "_") / job.name
+
+
+def prepare_out(out: Path, definition: dict) -> None:
+    """A new directory, or the same experiment's directory to continue; nothing else."""
+    record = out / "experiment.json"
+    if record.is_file():
+        saved = json.loads(record.read_text())
+        if saved != definition:
+            changed = sorted(k for k in definition.keys() | saved.keys() if saved.get(k) != definition.get(k))
+            raise UsageError(
+                f"--out {out} holds a different experiment (differs in {', '.join(changed)}); "
+                "give the same command to continue it, or a new --out"
+            )
+        return
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UsageError(f"--out {out} exists and is not an experiment directory; choose a new one")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(record, definition)
+
+
+def train_argv(definition: dict, env: str, job: Job, directory: Path) -> list[str]:
+    preset = definition["preset"] or ("isaacgym" if env in ISAACGYM_TASKS else "paper")
+    argv = ["--env", env, "--preset", preset, *job.train_args(), "--seed", "1"]
+    argv += ["--num-seeds", str(definition["seeds"]), "--total-timesteps", str(definition["timesteps"])]
+    if definition["num_envs"]:
+        argv += ["--num-envs", str(definition["num_envs"])]
+    if definition["checkpoint_every"] is not None:
+        argv += ["--checkpoint-every", str(definition["checkpoint_every"])]
+    return argv + ["--out", str(directory)]
+
+
+def run(args: argparse.Namespace) -> Path:
+    definition = resolve(args)
+    out = args.out or Path("experiments") / args.name
+    prepare_out(out, definition)
+    jobs = [Job(**{**job, "flags": tuple(job["flags"]), "sweep": _sweep(job["sweep"])}) for job in definition["jobs"]]
+    parser = train.build_parser()
+    total = len(definition["envs"]) * len(jobs)
+    for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
+        directory = run_dir(out, env, job)
+        prefix = f"[{index}/{total}] {env} {job.name}"
+        if (directory / "summary.json").is_file():
+            print(f"{prefix}: finished earlier", flush=True)
+            continue
+        if (directory / "config.json").is_file():
+            argv = ["--resume", str(directory)]
+            print(f"{prefix}: resuming", flush=True)
+        else:
+            # Killed before its config was written: nothing of the run exists yet.
+            shutil.rmtree(directory, ignore_errors=True)
+            argv = train_argv(definition, env, job, directory)
+            print(f"{prefix}: training", flush=True)
+        summary = train.train(parser.parse_args(argv + (["--quiet"] if args.quiet else [])))
+        print(f"{prefix}: final return {summary['final_return_mean']:.2f}, {summary['sps']:,.0f} steps/s", flush=True)
+        report.write_results(out, collect_rows(out, definition, jobs))
+    report.build(out, [out])
+    return out
+
+
+def _sweep(sweep: list | None) -> tuple[str, tuple[float, ...]] | None:
+    return (sweep[0], tuple(sweep[1])) if sweep else None
+
+
+def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:
+    """results.csv's rows from every finished run, in the experiment's order."""
+    rows = []
+    for env in definition["envs"]:
+        for job in jobs:
+            directory = run_dir(out, env, job)
+            if not (directory / "summary.json").is_file():
+                continue
+            config = json.loads((directory / "config.json").read_text())
+            for line in (directory / "metrics.jsonl").read_text().splitlines():
+                metrics = json.loads(line)
+                rows.append(
+                    {
+                        "experiment": definition["experiment"],
+                        "env": env,
+                        "variant": job.variant(metrics),
+                        "algo": config["algo"],
+                        "dist": config["config"]["dist"],
+                        **{name: metrics[name] for name in ppo.SWEEPABLE},
+                        "seed": metrics["seed"],
+                        **{name: metrics[name] for name in report.METRIC_COLUMNS},
+                    }
+                )
+    return rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        out = run(args)
+    except UsageError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except train.Interrupted as interrupted:
+        print(f"interrupted in {interrupted}; the same command continues the experiment", file=sys.stderr)
+        return 130
+    print(f"report: {out / report.REPORT_FILE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
