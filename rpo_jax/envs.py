@@ -22,11 +22,18 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import os
 from typing import Any, Callable, Protocol
 
 import jax
 import jax.numpy as jnp
-import mujoco
+
+# MuJoCo fixes its OpenGL backend at import. Without a display only an offscreen one can work,
+# so pick EGL there unless the user chose (rendering is only used by `rpo_jax.evaluate --video`).
+if not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
 import numpy as np
 from flax import struct
 
@@ -66,6 +73,15 @@ class Env(Protocol):
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]: ...
 
     def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]: ...
+
+
+class Renderable(Protocol):
+    """What a MuJoCo-based environment adds so that `rpo_jax.evaluate --video` can draw it."""
+
+    mj_model: mujoco.MjModel
+    control_dt: float  # seconds per step, for the video's frame rate
+
+    def qpos(self, state: Any) -> jax.Array: ...
 
 
 def _first_step(obs: jax.Array) -> TimeStep:
@@ -134,6 +150,11 @@ class Cartpole:
         self.mj_model = mujoco.MjModel.from_xml_string(CARTPOLE_XML)
         self.model = mjx.put_model(self.mj_model)
         self.data_template = mjx.make_data(self.mj_model)
+        self.control_dt = self.substeps * float(self.mj_model.opt.timestep)
+
+    @staticmethod
+    def qpos(state: CartpoleState) -> jax.Array:
+        return state.qpos
 
     def reset(self, key: jax.Array) -> tuple[CartpoleState, TimeStep]:
         kq, kv = jax.random.split(key)
@@ -189,6 +210,11 @@ class BraxEnv:
             1000,
             f"brax-{getattr(self.env, 'backend', backend or 'default')}",
         )
+        self.mj_model, self.control_dt = self.env.sys.mj_model, float(self.env.dt)
+
+    @staticmethod
+    def qpos(state: Any) -> jax.Array:
+        return state.pipeline_state.q
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
         state = self.env.reset(key)

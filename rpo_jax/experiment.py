@@ -133,7 +133,7 @@ def resolve(args: argparse.Namespace) -> dict:
     for flag in ("timesteps", "num_envs"):
         if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise UsageError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
-    return {
+    definition = {
         "experiment": args.name,
         "envs": env_names,
         "seeds": args.seeds,
@@ -143,6 +143,7 @@ def resolve(args: argparse.Namespace) -> dict:
         "checkpoint_every": args.checkpoint_every,
         "jobs": [dataclasses.asdict(job) for job in experiment.jobs],
     }
+    return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
 
 
 def run_dir(out: Path, env: str, job: Job) -> Path:

@@ -349,7 +349,6 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     checkpointer = Checkpointer(out)
 
     start = time.perf_counter()
-    run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(abstract_state).compile()
     record = {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
     if plan.resuming and checkpointer.latest_update() is not None:
         try:
@@ -358,6 +357,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             raise UsageError(f"--resume {out}: {error}") from None
     else:
         state = jax.jit(jax.vmap(trainer.init))(keys, hparams)
+    run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(abstract_state).compile()
     compile_seconds = time.perf_counter() - start
 
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild

@@ -1,0 +1,158 @@
+"""Evaluate a trained policy on fresh episodes, and optionally record one as a video.
+
+    python -m rpo_jax.evaluate runs/cartpole-rpo-20261123-101500 --episodes 20
+    python -m rpo_jax.evaluate RUN_DIR --deterministic --video cartpole.mp4
+
+Returns are the environment's own rewards (no reward scaling or normalisation), one episode
+per parallel environment, each to its end or the time limit.
+
+Videos are drawn offscreen by MuJoCo's renderer. On a machine without a display it needs an
+OpenGL backend that works headless: EGL (Mesa's `libegl1` works on a CPU; rpo_jax picks it
+when no DISPLAY is set) or OSMesa (`MUJOCO_GL=osmesa`, package `libosmesa6`), chosen with the
+MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video` extra:
+`pip install -e '.[video]'`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rpo_jax import envs
+from rpo_jax.cli import ArgumentParser, UsageError
+from rpo_jax.policy import PARAMS_FILE, load_policy
+
+
+def episode_returns(
+    env: envs.Env, policy: Callable[..., jax.Array], episodes: int, key: jax.Array, deterministic: bool
+) -> np.ndarray:
+    """The undiscounted return of the first episode of each of `episodes` parallel copies."""
+    vec = envs.EpisodeStatistics(envs.VectorEnv(env, episodes))
+
+    def run(key):
+        reset_key, act_key = jax.random.split(key)
+        state, ts = vec.reset(reset_key)
+
+        def step(carry, key):
+            state, obs, returns, finished = carry
+            state, ts = vec.step(state, policy(obs, key, deterministic))
+            done = ts.terminated | ts.truncated
+            returns = jnp.where(done & ~finished, ts.info["episode_return"], returns)
+            return (state, ts.obs, returns, finished | done), None
+
+        zeros = jnp.zeros(episodes)
+        carry = (state, ts.obs, zeros, zeros.astype(bool))
+        (_, _, returns, finished), _ = jax.lax.scan(
+            step, carry, jax.random.split(act_key, env.spec.max_episode_steps)
+        )
+        return returns, finished
+
+    returns, finished = jax.jit(run)(key)
+    if not bool(finished.all()):
+        raise RuntimeError(f"{env.spec.name}: an episode outlived max_episode_steps = {env.spec.max_episode_steps}")
+    return np.asarray(returns)
+
+
+def record_video(
+    env: envs.Env, policy: Callable[..., jax.Array], path: Path, key: jax.Array, deterministic: bool,
+    width: int = 640, height: int = 480,
+) -> tuple[float, int]:  # fmt: skip
+    """Renders one episode to `path` (MP4); returns its return and length."""
+    import mujoco
+
+    try:
+        import imageio.v2 as imageio
+    except ImportError:
+        raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
+    if not all(hasattr(env, name) for name in ("mj_model", "qpos", "control_dt")):
+        raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
+
+    episode_env = envs.TimeLimit(env)
+    reset, step = jax.jit(episode_env.reset), jax.jit(episode_env.step)
+    act = jax.jit(lambda obs, key: policy(obs, key, deterministic))
+    reset_key, key = jax.random.split(key)
+    state, ts = reset(reset_key)
+    positions, total, length = [np.asarray(env.qpos(state.inner))], 0.0, 0
+    while not bool(ts.terminated | ts.truncated) or length == 0:
+        key, act_key = jax.random.split(key)
+        state, ts = step(state, act(ts.obs, act_key))
+        positions.append(np.asarray(env.qpos(state.inner)))
+        total, length = total + float(ts.reward), length + 1
+
+    # A copy lit by a brighter headlight (models written for simulation often have no lights),
+    # seen from closer than MuJoCo's default framing of the whole model.
+    model = copy.copy(env.mj_model)
+    model.vis.headlight.ambient[:] = 0.45
+    model.vis.headlight.diffuse[:] = 0.7
+    data = mujoco.MjData(model)
+    camera = mujoco.MjvCamera()
+    mujoco.mjv_defaultFreeCamera(model, camera)
+    camera.distance *= 0.6
+    try:
+        renderer = mujoco.Renderer(model, height, width)
+    except mujoco.FatalError as error:
+        raise UsageError(
+            f"--video: no OpenGL context for offscreen rendering ({error}); on a headless machine set "
+            "MUJOCO_GL=egl (libegl1) or MUJOCO_GL=osmesa (libosmesa6)"
+        ) from None
+    frames = []
+    with renderer:
+        for qpos in positions:
+            data.qpos[:] = qpos
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera)
+            frames.append(renderer.render())
+    imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
+    return total, length
+
+
+def build_parser() -> ArgumentParser:
+    parser = ArgumentParser(prog="python -m rpo_jax.evaluate", description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a directory written by rpo_jax.train")
+    parser.add_argument("--episodes", type=int, default=10, help="episodes to average over (default 10)")
+    parser.add_argument("--deterministic", action="store_true", help="act with the policy's location, not a sample")
+    parser.add_argument("--run", type=int, default=0, help="which of the directory's runs (index in config.json)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
+    parser.add_argument("--video", type=Path, metavar="OUT.mp4", help="also render one episode to this file")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        if args.episodes < 1:
+            raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
+        if not (args.run_dir / PARAMS_FILE).is_file():
+            raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
+        if args.video and args.video.exists():
+            raise UsageError(f"--video {args.video} already exists; choose a new file")
+        saved = json.loads((args.run_dir / "config.json").read_text())
+        if not 0 <= args.run < len(saved["runs"]):
+            raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
+        env = envs.make_env(saved["env"])
+        policy = load_policy(args.run_dir, args.run)
+        key = jax.random.PRNGKey(args.seed)
+        returns = episode_returns(env, policy, args.episodes, key, args.deterministic)
+        mode = "deterministic" if args.deterministic else "stochastic"
+        print(
+            f"{saved['env']} run {args.run} (seed {saved['runs'][args.run]['seed']}), {mode} policy: "
+            f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.episodes} episodes"
+        )
+        if args.video:
+            total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)
+            print(f"video: {args.video} ({length} steps, return {total:.2f})")
+    except UsageError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

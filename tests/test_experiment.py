@@ -1,0 +1,202 @@
+"""Experiments, reports, checkpoints, resume and evaluation, on tiny Cartpole runs."""
+
+import csv
+import json
+import random
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rpo_jax import envs, evaluate, experiment, load_policy, report, train
+from rpo_jax.checkpoint import CHECKPOINT_DIR
+from rpo_jax.policy import PARAMS_FILE
+
+# 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
+TINY = [
+    "--envs", "cartpole", "--seeds", "2", "--timesteps", "12800", "--num-envs", "8",
+    "--checkpoint-every", "1280", "--quiet",
+]  # fmt: skip
+EXPERIMENT_CMD = [sys.executable, "-m", "rpo_jax.experiment", "ppo-vs-rpo", *TINY]
+JOBS = ("ppo", "rpo")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("experiment") / "ppo-vs-rpo"
+    assert experiment.main(["ppo-vs-rpo", *TINY, "--out", str(out)]) == 0
+    return out
+
+
+def job_dir(out: Path, job: str) -> Path:
+    return out / "runs" / "cartpole" / job
+
+
+def test_experiment_writes_results_report_and_figures(uninterrupted):
+    with open(uninterrupted / "results.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    assert tuple(rows[0]) == report.COLUMNS
+    # Every update is logged (100 per run), for 2 variants x 2 seeds.
+    assert len(rows) == 2 * 2 * 100
+    assert {(r["variant"], r["seed"]) for r in rows} == {(v, s) for v in JOBS for s in ("1", "2")}
+    assert {r["experiment"] for r in rows} == {"ppo-vs-rpo"} and {r["env"] for r in rows} == {"cartpole"}
+    assert {r["rpo_alpha"] for r in rows if r["variant"] == "rpo"} == {"0.5"}
+    for row in rows:
+        assert all(np.isfinite(float(row[name])) for name in report.METRIC_COLUMNS)
+
+    text = (uninterrupted / "report.md").read_text()
+    assert "| env | ppo | rpo |" in text and "| cartpole |" in text and "**" in text
+    summary = report.summarise(report.read_results(uninterrupted))
+    for job in JOBS:
+        finals = json.loads((job_dir(uninterrupted, job) / "summary.json").read_text())["final_return_mean"]
+        assert summary["cartpole", job]["return_mean"] == pytest.approx(finals)
+    for name in ("cartpole-curves.png", "normalized-scores.png", "perturbed-gaussian.png"):
+        figure = uninterrupted / report.FIGURES_DIR / name
+        assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 10_000
+        assert f"]({report.FIGURES_DIR}/{name})" in text
+
+
+def test_every_experiment_builds_valid_training_commands(tmp_path):
+    expected_variants = {
+        "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
+    }  # fmt: skip
+    parser = train.build_parser()
+    for name, spec in experiment.EXPERIMENTS.items():
+        definition = experiment.resolve(experiment.build_parser().parse_args([name, "--envs", "cartpole"]))
+        assert definition["timesteps"] == (100_000_000 if name == "long-horizon" else 8_000_000)
+        variants = []
+        for job in spec.jobs:
+            argv = experiment.train_argv(definition, "cartpole", job, tmp_path / job.name)
+            args = parser.parse_args(argv)
+            plan = train.plan_new_run(args)
+            assert plan.num_seeds == 10 and plan.config.num_envs == 512  # the isaacgym preset
+            grid = train.parse_sweeps(plan.sweep, plan.algo, plan.config)
+            defaults = {name: float(getattr(plan.config, name)) for name in ("rpo_alpha", "ent_coef", "lr", "drac_coef")}
+            variants += [job.variant({**defaults, **point}) for point in grid]
+        assert len(set(variants)) == expected_variants[name], (name, variants)
+
+
+def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path):
+    out = tmp_path / "ppo-vs-rpo"
+    cmd = [*EXPERIMENT_CMD, "--out", str(out)]
+    process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoints = job_dir(out, "rpo") / CHECKPOINT_DIR
+    deadline = time.monotonic() + 600
+    while not (checkpoints.is_dir() and any(p.name.isdigit() for p in checkpoints.iterdir())):
+        assert process.poll() is None and time.monotonic() < deadline
+        time.sleep(0.02)
+    process.kill()  # SIGKILL: no chance to clean up
+    process.wait()
+    assert (job_dir(out, "ppo") / "summary.json").is_file()
+    assert not (job_dir(out, "rpo") / "summary.json").exists()
+
+    # A checkpoint that does not fit the config is refused before anything is restored.
+    tampered = tmp_path / "tampered"
+    shutil.copytree(job_dir(out, "rpo"), tampered)
+    saved = json.loads((tampered / "config.json").read_text())
+    saved["config"]["hidden_sizes"] = [64, 64]  # the isaacgym preset trained [32, 32]
+    (tampered / "config.json").write_text(json.dumps(saved))
+    before = sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*"))
+    with pytest.raises(train.UsageError, match="does not match the config"):
+        train.train(train.build_parser().parse_args(["--resume", str(tampered)]))
+    assert sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*")) == before
+    with pytest.raises(train.UsageError, match="made with --env cartpole, not brax/ant"):
+        train.train(train.build_parser().parse_args(["--resume", str(tampered), "--env", "brax/ant"]))
+
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert "ppo: finished earlier" in result.stdout and "rpo: resuming" in result.stdout
+    assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
+    for job in JOBS:
+        assert (job_dir(out, job) / PARAMS_FILE).read_bytes() == (job_dir(uninterrupted, job) / PARAMS_FILE).read_bytes()
+
+
+def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
+    copy = tmp_path / "again"
+    shutil.copytree(uninterrupted, copy)
+    (copy / "report.md").unlink()
+    assert report.main([str(copy)]) == 0
+    assert (copy / "report.md").read_text().replace(str(copy), "") == (uninterrupted / "report.md").read_text().replace(
+        str(uninterrupted), ""
+    )
+    overlay = tmp_path / "overlay"
+    assert report.main([str(uninterrupted), str(copy), "--out", str(overlay)]) == 0
+    assert "| env | ppo-vs-rpo: ppo | ppo-vs-rpo: rpo | again: ppo | again: rpo |" in (overlay / "report.md").read_text()
+    capsys.readouterr()
+    assert report.main([str(uninterrupted), str(copy)]) == 2
+    assert report.main([str(tmp_path / "missing")]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert errors == [
+        "error: --out is needed when overlaying several directories",
+        f"error: {tmp_path / 'missing'} has no results.csv; give a directory written by rpo_jax.experiment",
+    ]
+
+
+def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
+    cases = [
+        (["ppo-vs-rpo", "--envs", "nowhere"], "unknown environment(s) nowhere"),
+        (["ppo-vs-rpo", "--envs", "cartpole", "--seeds", "0"], "--seeds must be >= 1"),
+        (["no-such-experiment"], "invalid choice"),
+        # The same directory with another definition: never mixed, never overwritten.
+        (["ppo-vs-rpo", *TINY[:-1], "--seeds", "3", "--out", str(uninterrupted)], "holds a different experiment"),
+    ]
+    for argv, message in cases:
+        capsys.readouterr()
+        assert experiment.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and message in err, (argv, err)
+
+
+def test_evaluation_of_a_trained_policy_beats_a_random_one(uninterrupted, capsys):
+    run_dir = job_dir(uninterrupted, "rpo")
+    env = envs.make_env("cartpole")
+    key = jax.random.PRNGKey(7)
+    trained = evaluate.episode_returns(env, load_policy(run_dir, run=0), 32, key, deterministic=True)
+
+    def random_policy(obs, key, deterministic):
+        return jax.random.uniform(key, obs.shape[:-1] + (1,), minval=-1.0, maxval=1.0)
+
+    uniform = evaluate.episode_returns(env, random_policy, 32, key, deterministic=False)
+    assert trained.shape == uniform.shape == (32,)
+    # Measured: trained about 470, uniform random actions about 10 (episodes end within ~20 steps).
+    assert trained.mean() > 200 and uniform.mean() < 50
+
+    assert evaluate.main([str(run_dir), "--episodes", "8", "--deterministic"]) == 0
+    assert "cartpole run 0 (seed 1), deterministic policy: return" in capsys.readouterr().out
+
+
+def test_evaluation_renders_a_video(uninterrupted, tmp_path):
+    imageio = pytest.importorskip("imageio.v2")
+    import mujoco
+
+    try:
+        mujoco.Renderer(envs.make_env("cartpole").mj_model, 32, 32).close()
+    except mujoco.FatalError as error:
+        pytest.skip(f"no offscreen OpenGL on this machine: {error}")
+    video = tmp_path / "cartpole.mp4"
+    assert evaluate.main([str(job_dir(uninterrupted, "rpo")), "--episodes", "2", "--video", str(video)]) == 0
+    frames = imageio.mimread(video, memtest=False)
+    assert len(frames) > 10 and frames[0].shape == (480, 640, 3)
+    assert np.ptp(np.asarray(frames[len(frames) // 2])) > 50  # something was drawn
+    assert evaluate.main([str(job_dir(uninterrupted, "rpo")), "--video", str(video)]) == 2  # never overwritten
+
+
+@pytest.mark.slow
+def test_five_random_kills_leave_the_same_results(uninterrupted, tmp_path):
+    out = tmp_path / "ppo-vs-rpo"
+    cmd = [*EXPERIMENT_CMD, "--out", str(out)]
+    rng = random.Random(0)
+    for _ in range(5):
+        process = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(3.0, 25.0))
+        process.kill()
+        process.wait()
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
