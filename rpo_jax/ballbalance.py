@@ -148,11 +148,11 @@ class BallBalanceState:
 class BallBalance:
     """IsaacGym's BallBalance rebuilt as an MJX model.
 
-    A round tray (radius 0.5 m, 2 cm thick, density 100) on a free joint rests at about
-    0.559 m on three legs at 0, 120 and 240 degrees. Each leg is two capsules (radius 0.02 m,
-    length 0.36 m, density 1000): the upper one hangs from a passive hinge (+-45 deg) under the
-    tray at radius 0.4 m, the lower one turns on an actuated knee (-70 to +90 deg), and its foot
-    is pinned to the ground at (0.4 cos t, 0.4 sin t, 0.02) by an equality `connect` constraint.
+    A tray (radius 0.5 m, 2 cm thick, density 100) on a free joint rests at about 0.559 m on
+    three legs at 0, 120 and 240 degrees. Each leg is two capsules (radius 0.02 m, length
+    0.36 m, density 1000): the upper one hangs from a passive hinge (+-45 deg) under the tray at
+    radius 0.4 m, the lower one turns on an actuated knee (-70 to +90 deg), and its foot is
+    pinned to the ground at (0.4 cos t, 0.4 sin t, 0.02) by an equality `connect` constraint.
     A ball (radius 0.1 m, density 200) falls onto the tray.
 
     Action (3) in [-1, 1]: every step each knee's position target moves by 0.01 * 20 * action
@@ -177,9 +177,15 @@ class BallBalance:
       armature h kd + h^2 kp = 1.4 and damping kd + h kp = 140, applied explicitly. This is the
       implicit PD drive exactly, and stable at any stiffness; the armature is the drive's
       implicit response, not extra inertia of the leg.
-    - Feet: equality `connect` constraints instead of IsaacGym's stiff attractors (5e7 N/m).
-      They are soft at MuJoCo's default impedance: a foot gives about 0.5 mm under the
-      tray's and ball's weight.
+    - Tray: IsaacGym meshes the cylinder as a 40-sided convex prism (slices_per_cylinder), and
+      so does this model, mass included (1.564 kg rather than 1.571). It also avoids MJX's
+      sphere-cylinder collider, a few steps of descent on signed distances whose normal tilts
+      with the ball's offset: a ball resting near the centre rolled off within 5 s.
+    - Feet: equality `connect` constraints instead of IsaacGym's stiff attractors (5e7 N/m),
+      and the hinge stops as joint limits, both with impedance raised to 0.99-0.999. A foot
+      gives under 0.1 mm under the robot's load. MuJoCo relaxes a constraint over at least two
+      steps (0.02 s), so under fast knee motions that fight each other the feet still slip by
+      up to a few cm and the upper hinges pass their stops by up to about 0.3 rad.
     - Sensors: IsaacGym's rigid-body force sensors report the net force on the tray (the same
       force at all three, about the tray's mass times its acceleration) with the torque taken
       at each sensor. MuJoCo's `force` and `torque` sensors measure the load a joint carries;
