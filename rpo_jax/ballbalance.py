@@ -244,11 +244,11 @@ class BallBalance:
 
     def reset(self, key: jax.Array) -> tuple[BallBalanceState, TimeStep]:
         k_dist, k_dir, k_height, k_speed = jax.random.split(key, 4)
-        distance = jax.random.uniform(k_dist, (), minval=self.ball_distance_range[0], maxval=self.ball_distance_range[1])
+        low, high = self.ball_distance_range
+        distance = jax.random.uniform(k_dist, (), minval=low, maxval=high)
         heading = jax.random.uniform(k_dir, (), maxval=2.0 * jnp.pi)
         direction = jnp.stack([jnp.cos(heading), jnp.sin(heading)])
         height = jax.random.uniform(k_height, (), minval=self.ball_height_range[0], maxval=self.ball_height_range[1])
-        low, high = self.ball_distance_range
         speed = (distance - low) / (high - low) * jax.random.uniform(k_speed, (), maxval=self.ball_max_horizontal_speed)
         b, v = self.ball_qpos, self.ball_dof
         qpos = self.rest_qpos.at[b : b + 2].set(distance * direction).at[b + 2].set(height)

@@ -76,7 +76,8 @@ def start(vector_env, seed=0, ball_pos=None, ball_vel=None, target=None):
     if ball_pos is not None:
         b, v = BALL_QPOS, BALL_DOF
         qpos = inner.qpos.at[:, b : b + 3].set(jnp.asarray(ball_pos, jnp.float32))
-        qvel = inner.qvel.at[:, v : v + 3].set(jnp.asarray(ball_vel if ball_vel is not None else np.zeros((NUM_ENVS, 3)), jnp.float32))
+        ball_vel = np.zeros((NUM_ENVS, 3)) if ball_vel is None else ball_vel
+        qvel = inner.qvel.at[:, v : v + 3].set(jnp.asarray(ball_vel, jnp.float32))
         inner = inner.replace(qpos=qpos, qvel=qvel)
     if target is not None:
         inner = inner.replace(target=jnp.asarray(target, jnp.float32))
@@ -169,7 +170,8 @@ def test_observation_is_clipped_to_plus_minus_5(vector_env, rollout):
     ts, states = rollout(state, np.zeros((NUM_STEPS, NUM_ENVS, 3)))
     np.testing.assert_array_equal(ts.obs[0, :, 9:11], [[5.0, -5.0], [-5.0, 5.0]])
     for e in range(NUM_ENVS):
-        np.testing.assert_allclose(ts.obs[0, e], expected_obs(pick(states, 0, e), pick(ts.info, 0, e)), rtol=1e-5, atol=1e-6)
+        expected = expected_obs(pick(states, 0, e), pick(ts.info, 0, e))
+        np.testing.assert_allclose(ts.obs[0, e], expected, rtol=1e-5, atol=1e-6)
 
 
 def test_knee_targets_move_by_dt_times_20_times_action_and_stay_in_range(vector_env, rollout):
@@ -177,7 +179,8 @@ def test_knee_targets_move_by_dt_times_20_times_action_and_stay_in_range(vector_
     actions = np.zeros((NUM_STEPS, NUM_ENVS, 3))
     actions[0] = [[1.0, -0.5, 3.0], [1.0, -1.0, -0.25]]  # 3.0 is clipped to 1
     _, states = rollout(state, actions)
-    np.testing.assert_allclose(states.target[0], [[0.2, -0.1, 0.2], [np.radians(90), np.radians(-70), -0.05]], rtol=1e-6)
+    expected = [[0.2, -0.1, 0.2], [np.radians(90), np.radians(-70), -0.05]]
+    np.testing.assert_allclose(states.target[0], expected, rtol=1e-6)
     np.testing.assert_array_equal(states.target[1], states.target[0])  # zero action holds them
 
 
