@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import importlib
 import io
 import os
 from typing import Any, Callable, Protocol
@@ -456,6 +457,7 @@ BRAX_ENVS = (
 REGISTRY: dict[str, Callable[[], Env]] = {"cartpole": Cartpole} | {
     f"brax/{name}": (lambda name=name: BraxEnv(name)) for name in BRAX_ENVS
 }
+REGISTRY["ballbalance"] = lambda: importlib.import_module("rpo_jax.ballbalance").BallBalance()  # imports envs
 
 
 def make_env(name: str) -> Env:
