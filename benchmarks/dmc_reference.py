@@ -17,7 +17,6 @@ import json
 import sys
 
 import numpy as np
-from dm_control import suite
 
 SEEDS = 8
 STEPS = 1000
@@ -36,6 +35,8 @@ def fixed_actions(steps: int, low: np.ndarray, high: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
+    from dm_control import suite  # here, so tests can import fixed_actions without dm_control
+
     tasks = {}
     for domain, task in suite.ALL_TASKS:
         name = f"{domain}-{task}"
