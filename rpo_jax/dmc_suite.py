@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from rpo_jax.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
-from rpo_jax.envs import EnvSpec
-from rpo_jax.host import HostEnv, MissingExtraError
+from rpo_jax.envs import EnvSpec, MissingExtraError
+from rpo_jax.host import HostEnv
 
 
 def _spec(task: str) -> EnvSpec:

@@ -430,6 +430,13 @@ BRAX_ENVS = (
 )  # fmt: skip
 
 
+class MissingExtraError(ValueError):
+    """An environment needs an optional dependency that is not installed."""
+
+    def __init__(self, name: str, module: str, extra: str) -> None:
+        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install -e '.[{extra}]'")
+
+
 def _gym(name: str) -> Env:
     from rpo_jax import gym_suite
 
@@ -466,12 +473,15 @@ REGISTRY: dict[str, Callable[[], Env]] = (
 )
 
 
-# Observation and action sizes of Brax's environments (MJX backend), so that listing them does
-# not build their systems; tests/test_envs.py checks them against the built environments.
-BRAX_SIZES = {
-    "ant": (27, 8), "fast": (2, 1), "halfcheetah": (18, 6), "hopper": (11, 3), "humanoid": (244, 17),
-    "humanoidstandup": (244, 17), "inverted_double_pendulum": (8, 1), "inverted_pendulum": (4, 1),
-    "pusher": (23, 7), "reacher": (11, 2), "swimmer": (8, 2), "walker2d": (17, 6),
+# Observation size, action size and backend of Brax's environments, so that listing them does
+# not build their systems (minutes on a CPU); tests/test_registry.py checks them against the
+# built environments.
+BRAX_SPECS = {
+    "ant": (27, 8, "generalized"), "fast": (2, 1, "default"), "halfcheetah": (17, 6, "generalized"),
+    "hopper": (11, 3, "generalized"), "humanoid": (244, 17, "generalized"),
+    "humanoidstandup": (244, 17, "generalized"), "inverted_double_pendulum": (8, 1, "generalized"),
+    "inverted_pendulum": (4, 1, "generalized"), "pusher": (23, 7, "generalized"),
+    "reacher": (11, 2, "generalized"), "swimmer": (8, 2, "generalized"), "walker2d": (17, 6, "generalized"),
 }  # fmt: skip
 
 
@@ -480,8 +490,9 @@ def env_spec(name: str) -> EnvSpec:
     if name not in REGISTRY:
         raise ValueError(f"unknown env {name!r}; valid names: {', '.join(REGISTRY)}")
     if name.startswith("brax/"):
-        obs_size, action_size = BRAX_SIZES[name.removeprefix("brax/")]
-        return EnvSpec(name, obs_size, action_size, (-1.0,) * action_size, (1.0,) * action_size, 1000, "brax-mjx")
+        obs_size, action_size, backend = BRAX_SPECS[name.removeprefix("brax/")]
+        high = (1.0,) * action_size
+        return EnvSpec(name, obs_size, action_size, tuple(-h for h in high), high, 1000, f"brax-{backend}")
     host_specs = _host_suite_specs()
     if name in host_specs:
         return host_specs[name]
@@ -492,7 +503,7 @@ def env_spec(name: str) -> EnvSpec:
 def make_env(name: str) -> Env:
     """The environment registered under `name`: a single (unbatched) JAX environment, or a
     host-side one (`host.HostEnv`) that only exists batched. `vectorize` batches either.
-    A missing optional dependency raises `host.MissingExtraError` (a ValueError) naming the
+    A missing optional dependency raises `MissingExtraError` (a ValueError) naming the
     extra to install."""
     if name not in REGISTRY:
         raise ValueError(f"unknown env {name!r}; valid names: {', '.join(REGISTRY)}")

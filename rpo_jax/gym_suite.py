@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax.envs import EnvSpec, TimeStep, _first_step
-from rpo_jax.host import HostEnv, MissingExtraError, SequentialSimulators
+from rpo_jax.envs import EnvSpec, MissingExtraError, TimeStep, _first_step
+from rpo_jax.host import HostEnv, SequentialSimulators
 
 PENDULUM_SPEC = EnvSpec("gym/Pendulum-v1", 3, 1, (-2.0,), (2.0,), 200, "jax")
 BIPEDAL_WALKER_SPEC = EnvSpec("gym/BipedalWalker-v3", 24, 4, (-1.0,) * 4, (1.0,) * 4, 1600, "host")

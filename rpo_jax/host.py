@@ -29,13 +29,6 @@ from jax.experimental import io_callback
 from rpo_jax.envs import EnvSpec, TimeStep, _first_step
 
 
-class MissingExtraError(ValueError):
-    """An environment needs an optional dependency that is not installed."""
-
-    def __init__(self, name: str, module: str, extra: str) -> None:
-        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install -e '.[{extra}]'")
-
-
 class HostSimulators(Protocol):
     """`num_envs` simulators stepped together on the host; numpy in, numpy out."""
 

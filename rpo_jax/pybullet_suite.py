@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from rpo_jax.envs import EnvSpec
-from rpo_jax.host import HostEnv, MissingExtraError, SequentialSimulators
+from rpo_jax.envs import EnvSpec, MissingExtraError
+from rpo_jax.host import HostEnv, SequentialSimulators
 
 GYM_IDS = {"Ant": "AntBulletEnv-v0", "Minitaur": "MinitaurBulletEnv-v0"}
 SPECS = {

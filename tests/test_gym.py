@@ -13,7 +13,9 @@ from rpo_jax import envs, ppo
 gymnasium = pytest.importorskip("gymnasium")
 pytest.importorskip("gymnax")
 
-SMALL = ppo.Config(num_envs=4, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=4 * 32 * 2, rpo_alpha=0.5)
+SMALL = ppo.Config(
+    num_envs=4, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=4 * 32 * 2, rpo_alpha=0.5
+)
 
 
 def scan_steps(env, key, actions):

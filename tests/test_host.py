@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, ppo, train
-from rpo_jax.host import HostEnv, MissingExtraError, SequentialSimulators
+from rpo_jax.envs import MissingExtraError
+from rpo_jax.host import HostEnv, SequentialSimulators
 
 EPISODE = 5
 SPEC = envs.EnvSpec("host_point_mass", 2, 1, (-1.0,), (1.0,), EPISODE, "host")
@@ -33,7 +34,7 @@ class PointMassSim:
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
         velocity = self.state[1] + 0.1 * float(action[0])
         self.state, self.t = np.array([self.state[0] + 0.1 * velocity, velocity]), self.t + 1
-        return self.state.copy(), -self.state[0] ** 2, False, self.t >= EPISODE
+        return self.state.copy(), -(self.state[0] ** 2), False, self.t >= EPISODE
 
 
 def host_point_mass() -> HostEnv:
@@ -43,9 +44,6 @@ def host_point_mass() -> HostEnv:
             num_envs, seed, PointMassSim, lambda sim: sim.reset(), lambda sim, action: sim.step(action)
         ),
     )
-
-
-TINY = ppo.Config(num_envs=4, num_steps=8, num_minibatches=2, update_epochs=2, total_timesteps=4 * 8 * 3, rpo_alpha=0.5)
 
 
 def rollout(env, key, actions):
@@ -76,7 +74,7 @@ def test_host_env_auto_resets_and_truncates_inside_a_jitted_scan():
     last = EPISODE - 1
     assert not np.allclose(traj.obs[last], traj.final_obs[last])
     np.testing.assert_array_equal(traj.obs[:last], traj.final_obs[:last])
-    np.testing.assert_allclose(traj.reward, -np.asarray(traj.final_obs)[..., 0] ** 2, rtol=1e-6)
+    np.testing.assert_allclose(traj.reward, -(np.asarray(traj.final_obs)[..., 0] ** 2), rtol=1e-6)
 
 
 def test_same_key_same_episodes_other_key_other_episodes():
@@ -91,20 +89,31 @@ def test_same_key_same_episodes_other_key_other_episodes():
 
 
 def test_runs_vmapped_over_seeds_each_step_their_own_simulators():
-    trainer = ppo.make_trainer(TINY, host_point_mass())
-    train_runs = jax.jit(jax.vmap(lambda k: trainer.run(trainer.init(k), TINY.num_updates)))
-    state, metrics = train_runs(jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)]))
-    for name, value in vars(metrics).items():
-        assert value.shape == (2, TINY.num_updates) and np.isfinite(np.asarray(value)).all(), name
-    # Episodes of EPISODE steps over 4 envs x 8 steps per update.
-    assert int(np.asarray(metrics.episodes_finished).sum()) > 0
-    np.testing.assert_allclose(metrics.episode_length[:, -1], EPISODE)
-    handles = np.asarray(state.env_state.inner.inner.inner.handle)
-    assert len(set(handles.tolist())) == 2
+    env = envs.vectorize(host_point_mass(), 2)
+    actions = jnp.ones((2 * EPISODE, 2, 1))
+
+    @jax.jit
+    @jax.vmap
+    def runs(key):
+        state, _ = env.reset(key)
+        return jax.lax.scan(env.step, state, actions)
+
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
+    state, traj = runs(keys)
+    assert traj.obs.shape == (2, 2 * EPISODE, 2, 2) and np.asarray(traj.truncated).sum() == 8
+    assert len(set(np.asarray(state.handle).tolist())) == 2
     # Each run's result depends on its own key only: swapping the keys swaps the runs.
-    _, swapped = train_runs(jnp.stack([jax.random.PRNGKey(s) for s in (1, 0)]))
-    np.testing.assert_array_equal(swapped.episode_return[::-1], metrics.episode_return)
-    assert not np.array_equal(metrics.episode_return[0], metrics.episode_return[1])
+    _, swapped = runs(keys[::-1])
+    np.testing.assert_array_equal(swapped.obs[::-1], traj.obs)
+    assert not np.array_equal(traj.obs[0], traj.obs[1])
+
+
+def test_trains_on_a_host_env():
+    config = ppo.Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
+    _, metrics = jax.jit(ppo.make_train(config, host_point_mass()))(jax.random.PRNGKey(0))
+    for name, value in vars(metrics).items():
+        assert value.shape == (2,) and np.isfinite(np.asarray(value)).all(), name
+    np.testing.assert_allclose(metrics.episode_length, EPISODE)
 
 
 def test_missing_extra_is_a_one_line_value_error(monkeypatch):
@@ -131,6 +140,11 @@ def test_listing_names_every_env_with_its_sizes_without_building_them():
     assert list(rows) == list(envs.REGISTRY)
     for name in ("gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "pybullet/Minitaur", "dmc/walker-walk"):
         spec = envs.env_spec(name)
-        assert rows[name] == [spec.backend, str(spec.observation_size), str(spec.action_size), str(spec.max_episode_steps)]
+        assert rows[name] == [
+            spec.backend,
+            str(spec.observation_size),
+            str(spec.action_size),
+            str(spec.max_episode_steps),
+        ]
     assert rows["dmc/walker-walk"] == ["host", "24", "6", "1000"]
     assert rows["cartpole"] == ["mjx", "4", "1", "500"]
