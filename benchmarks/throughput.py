@@ -4,11 +4,11 @@
 
 env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random actions, timed
 after a warm-up call, from a state reset beforehand (for a host-side environment, the scan of
-its io_callback steps).
-raw_sps (host-side environments only): the same steps on the host simulators called directly
-from Python with numpy actions, no JAX involved. train_sps: the full PPO/RPO update (rollout, GAE, epochs of minibatch SGD)
-with the `isaacgym` preset at --num-envs, timed after compilation. compile_seconds: the
-ahead-of-time compilation of that training program.
+its io_callback steps). raw_sps (host-side environments only): the same steps on the host
+simulators called directly from Python with numpy actions, no JAX involved. train_sps: the full
+PPO/RPO update (rollout, GAE, epochs of minibatch SGD) with --preset (default `isaacgym`) at
+--num-envs, timed after compilation. compile_seconds: the ahead-of-time compilation of that
+training program.
 """
 
 from __future__ import annotations
@@ -76,8 +76,10 @@ def raw_host_steps_per_second(env: HostEnv, num_envs: int, num_steps: int, repea
     return num_envs * num_steps / best_of(run, repeats)
 
 
-def train_steps_per_second(name: str, num_envs: int, num_updates: int, repeats: int) -> tuple[float, float]:
-    config = dataclasses.replace(ppo.PRESETS["isaacgym"], num_envs=num_envs, rpo_alpha=0.5)
+def train_steps_per_second(
+    name: str, preset: str, num_envs: int, num_updates: int, repeats: int
+) -> tuple[float, float]:
+    config = dataclasses.replace(ppo.PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
     trainer = ppo.make_trainer(config, envs.make_env(name))
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
@@ -92,6 +94,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="cartpole")
     parser.add_argument("--num-envs", type=int, default=1024)
+    parser.add_argument(
+        "--preset", default="isaacgym", choices=sorted(ppo.PRESETS), help="config of the timed training"
+    )
     parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
     parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
     parser.add_argument("--repeats", type=int, default=3)
@@ -109,11 +114,14 @@ def main() -> int:
         else None
     )
     env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
-    train_sps, compile_seconds = train_steps_per_second(args.env, args.num_envs, args.train_updates, args.repeats)
+    train_sps, compile_seconds = train_steps_per_second(
+        args.env, args.preset, args.num_envs, args.train_updates, args.repeats
+    )
     device = jax.devices()[0]
     result = {
         "env": args.env,
         "num_envs": args.num_envs,
+        "preset": args.preset,
         "raw_sps": raw_sps,
         "env_sps": env_sps,
         "train_sps": train_sps,

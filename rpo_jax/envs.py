@@ -14,7 +14,8 @@ A single JAX environment (Cartpole on MJX, a Brax environment) returns unbatched
 `VectorEnv` vmaps it over `num_envs` copies and gives the same protocol with a leading batch
 axis. The batch wrappers (episode statistics, action clipping, reward and observation
 normalisation) work on that batched protocol, so a host-side simulator that implements it
-directly can sit under them too. The trainer sees only the outermost `Env`.
+directly can sit under them too (`rpo_jax.host`; `vectorize` batches either kind). The trainer
+sees only the outermost `Env`.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import sys
 from typing import Any, Callable, Protocol
 
 import jax
@@ -523,10 +525,10 @@ def make_vector_env(name: str, num_envs: int) -> Env:
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m rpo_jax.envs`: one line per registered environment."""
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m rpo_jax.envs", description="List the registered environments.")
-    parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    if argv:
+        print(f"error: python -m rpo_jax.envs takes no arguments, got {' '.join(argv)}", file=sys.stderr)
+        return 2
     rows = [("name", "backend", "obs", "act", "episode")]
     for name in REGISTRY:
         spec = env_spec(name)
@@ -535,7 +537,6 @@ def main(argv: list[str] | None = None) -> int:
     for row in rows:
         print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
     return 0
-
 
 
 if __name__ == "__main__":
