@@ -1,6 +1,6 @@
 """DeepMind Control on the host (envpool) against dm_control's own figures, taken by
-benchmarks/dmc_reference.py into tests/data/dmc_reference.json. Skipped without the `dmc` extra
-except for the checks of the static task table."""
+benchmarks/dmc_reference.py into tests/data/. Skipped without the `dmc` extra except for the
+checks of the static task table."""
 
 from __future__ import annotations
 
@@ -17,8 +17,9 @@ from rpo_jax import dmc_tasks, envs
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "dmc_reference.json").read_text())
+SAME_START = json.loads((ROOT / "tests" / "data" / "dmc_same_start.json").read_text())
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from dmc_reference import PAPER_TASKS, fixed_actions  # noqa: E402
+from dmc_reference import PAPER_TASKS, SAME_START_EPISODES, SAME_START_SEED, fixed_actions  # noqa: E402
 
 # quadruped-escape builds its random terrain for a minute per pool: slow tests only.
 QUICK_TASKS = ("walker-walk", "fish-swim", "humanoid-run", "quadruped-walk")
@@ -37,13 +38,15 @@ def test_task_table_is_dm_controls():
         assert spec.observation_size == sum(size for _, size in keys) and spec.max_episode_steps == 1000
 
 
-def fixed_action_returns(task: str, episodes: int = 8) -> np.ndarray:
+def fixed_action_returns(task: str, episodes: int = 8, seed: int = 12345, first_obs: list | None = None) -> np.ndarray:
     from rpo_jax.dmc_suite import SPECS, DmcSimulators
 
     spec = SPECS[f"dmc/{task}"]
-    simulators = DmcSimulators(task, episodes, seed=12345)
+    simulators = DmcSimulators(task, episodes, seed)
     first = simulators.reset()
     assert first.shape == (episodes, spec.observation_size)
+    if first_obs is not None:
+        np.testing.assert_array_equal(first, first_obs)
     returns = np.zeros(episodes)
     for step, action in enumerate(fixed_actions(1000, np.array(spec.action_low), np.array(spec.action_high))):
         _, reward, terminated, truncated, final_obs = simulators.step(np.broadcast_to(action, (episodes, len(action))))
@@ -67,6 +70,17 @@ def assert_agrees_with_dm_control(task: str) -> None:
         reference_mean,
         error,
     )
+
+
+@pytest.mark.parametrize("task", sorted(SAME_START["tasks"]))
+def test_from_the_same_start_the_returns_are_dm_controls(task):
+    """Starting where dm_control was put (envpool's seeded first observations, which determine
+    these tasks' joint states), the fixed-action returns match dm_control's."""
+    pytest.importorskip("envpool")
+    reference = SAME_START["tasks"][task]
+    assert SAME_START["seed"] == SAME_START_SEED
+    returns = fixed_action_returns(task, SAME_START_EPISODES, SAME_START_SEED, reference["first_obs"])
+    np.testing.assert_allclose(returns, reference["returns"], rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("task", QUICK_TASKS)
