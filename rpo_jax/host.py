@@ -95,8 +95,9 @@ class BatchedHostEnv:
         )
 
     def reset(self, key: jax.Array) -> tuple[HostState, TimeStep]:
-        # The seed is drawn in JAX so that raw and typed keys both work.
-        seed = jax.random.randint(key, (), 0, np.iinfo(np.int32).max, dtype=jnp.int32)
+        # Drawn in JAX so that raw and typed keys both work; below 2^30 so that a simulator that
+        # seeds environment i with seed + i (envpool) stays within int32.
+        seed = jax.random.randint(key, (), 0, 2**30, dtype=jnp.int32)
         handle, obs = io_callback(self._host_reset, self.reset_shapes, seed)
         return HostState(handle), _first_step(obs)
 
