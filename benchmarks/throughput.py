@@ -3,9 +3,12 @@
     python benchmarks/throughput.py --env cartpole --num-envs 1024 --json OUT.json
 
 env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random actions, timed
-after a warm-up call. train_sps: the full PPO/RPO update (rollout, GAE, epochs of minibatch SGD)
-with the `isaacgym` preset at --num-envs, timed after compilation. compile_seconds: the
-ahead-of-time compilation of that training program.
+after a warm-up call, from a state reset beforehand (for a host-side environment, the scan of
+its io_callback steps). raw_sps (host-side environments only): the same steps on the host
+simulators called directly from Python with numpy actions, no JAX involved. train_sps: the full
+PPO/RPO update (rollout, GAE, epochs of minibatch SGD) with --preset (default `isaacgym`) at
+--num-envs, timed after compilation. compile_seconds: the ahead-of-time compilation of that
+training program.
 """
 
 from __future__ import annotations
@@ -19,8 +22,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rpo_jax import envs, ppo
+from rpo_jax.host import HostEnv
 
 
 def best_of(fn, repeats: int) -> float:
@@ -38,24 +43,43 @@ def env_steps_per_second(name: str, num_envs: int, num_steps: int, repeats: int)
     low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
 
     @jax.jit
-    def rollout(key):
-        state, ts = env.reset(key)
-
+    def rollout(state, key):
         def step(state, key):
             action = jax.random.uniform(key, (num_envs, env.spec.action_size), minval=low, maxval=high)
             state, ts = env.step(state, action)
             return state, ts.reward.sum()
 
-        _, rewards = jax.lax.scan(step, state, jax.random.split(key, num_steps))
-        return rewards.sum()
+        state, rewards = jax.lax.scan(step, state, jax.random.split(key, num_steps))
+        return state, rewards.sum()
 
     key = jax.random.PRNGKey(0)
-    jax.block_until_ready(rollout(key))  # compile and warm up
-    return num_envs * num_steps / best_of(lambda: rollout(key), repeats)
+    # Reset outside the timed scan: a host-side environment builds its simulators there.
+    state, _ = jax.jit(env.reset)(key)
+    jax.block_until_ready(rollout(state, key))  # compile and warm up
+    return num_envs * num_steps / best_of(lambda: rollout(state, key), repeats)
 
 
-def train_steps_per_second(name: str, num_envs: int, num_updates: int, repeats: int) -> tuple[float, float]:
-    config = dataclasses.replace(ppo.PRESETS["isaacgym"], num_envs=num_envs, rpo_alpha=0.5)
+def raw_host_steps_per_second(env: HostEnv, num_envs: int, num_steps: int, repeats: int) -> float:
+    simulators = env.make_simulators(num_envs, 0)
+    simulators.reset()
+    spec = env.spec
+    actions = (
+        np.random.default_rng(0)
+        .uniform(spec.action_low, spec.action_high, (num_steps, num_envs, spec.action_size))
+        .astype(np.float32)
+    )
+
+    def run() -> None:
+        for action in actions:
+            simulators.step(action)
+
+    return num_envs * num_steps / best_of(run, repeats)
+
+
+def train_steps_per_second(
+    name: str, preset: str, num_envs: int, num_updates: int, repeats: int
+) -> tuple[float, float]:
+    config = dataclasses.replace(ppo.PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
     trainer = ppo.make_trainer(config, envs.make_env(name))
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
@@ -70,31 +94,47 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="cartpole")
     parser.add_argument("--num-envs", type=int, default=1024)
+    parser.add_argument(
+        "--preset", default="isaacgym", choices=sorted(ppo.PRESETS), help="config of the timed training"
+    )
     parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
     parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
-    if args.env not in envs.REGISTRY:
-        print(f"error: unknown env {args.env!r}; valid names: {', '.join(envs.REGISTRY)}", file=sys.stderr)
+    try:
+        env = envs.make_env(args.env)
+    except ValueError as error:
+        print(f"error: {error}", file=sys.stderr)
         return 2
 
+    raw_sps = (
+        raw_host_steps_per_second(env, args.num_envs, args.env_steps, args.repeats)
+        if isinstance(env, HostEnv)
+        else None
+    )
     env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
-    train_sps, compile_seconds = train_steps_per_second(args.env, args.num_envs, args.train_updates, args.repeats)
+    train_sps, compile_seconds = train_steps_per_second(
+        args.env, args.preset, args.num_envs, args.train_updates, args.repeats
+    )
     device = jax.devices()[0]
     result = {
         "env": args.env,
         "num_envs": args.num_envs,
+        "preset": args.preset,
+        "raw_sps": raw_sps,
         "env_sps": env_sps,
         "train_sps": train_sps,
         "train_to_env_ratio": train_sps / env_sps,
+        "train_to_raw_ratio": train_sps / raw_sps if raw_sps else None,
         "compile_seconds": compile_seconds,
         "device": f"{device.platform}:{device.device_kind}",
         "jax": jax.__version__,
     }
-    print(f"{'env':<12}{'num_envs':>10}{'env_sps':>14}{'train_sps':>14}{'compile_s':>11}  device")
+    raw = f"{raw_sps:>14,.0f}" if raw_sps else f"{'-':>14}"
+    print(f"{'env':<20}{'num_envs':>10}{'raw_sps':>14}{'env_sps':>14}{'train_sps':>14}{'compile_s':>11}  device")
     print(
-        f"{args.env:<12}{args.num_envs:>10}{env_sps:>14,.0f}{train_sps:>14,.0f}"
+        f"{args.env:<20}{args.num_envs:>10}{raw}{env_sps:>14,.0f}{train_sps:>14,.0f}"
         f"{compile_seconds:>11.1f}  {result['device']}"
     )
     if args.json:

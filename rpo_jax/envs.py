@@ -14,7 +14,8 @@ A single JAX environment (Cartpole on MJX, a Brax environment) returns unbatched
 `VectorEnv` vmaps it over `num_envs` copies and gives the same protocol with a leading batch
 axis. The batch wrappers (episode statistics, action clipping, reward and observation
 normalisation) work on that batched protocol, so a host-side simulator that implements it
-directly can sit under them too. The trainer sees only the outermost `Env`.
+directly can sit under them too (`rpo_jax.host`; `vectorize` batches either kind). The trainer
+sees only the outermost `Env`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import dataclasses
 import importlib
 import io
 import os
+import sys
 from typing import Any, Callable, Protocol
 
 import jax
@@ -37,6 +39,8 @@ if not os.environ.get("DISPLAY"):
 import mujoco  # noqa: E402
 import numpy as np
 from flax import struct
+
+from rpo_jax import dmc_tasks
 
 # mujoco.mjx prints (not logs) a line when its optional warp backend is missing; keep stdout clean.
 with contextlib.redirect_stdout(io.StringIO()):
@@ -454,20 +458,114 @@ BRAX_ENVS = (
     "inverted_double_pendulum", "inverted_pendulum", "pusher", "reacher", "swimmer", "walker2d",
 )  # fmt: skip
 
-REGISTRY: dict[str, Callable[[], Env]] = {"cartpole": Cartpole} | {
-    f"brax/{name}": (lambda name=name: BraxEnv(name)) for name in BRAX_ENVS
-}
+
+class MissingExtraError(ValueError):
+    """An environment needs an optional dependency that is not installed."""
+
+    def __init__(self, name: str, module: str, extra: str) -> None:
+        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install -e '.[{extra}]'")
+
+
+def _gym(name: str) -> Env:
+    from rpo_jax import gym_suite
+
+    return gym_suite.Pendulum() if name == "Pendulum-v1" else gym_suite.bipedal_walker()
+
+
+def _dmc(task: str) -> Env:
+    from rpo_jax import dmc_suite
+
+    return dmc_suite.make(task)
+
+
+def _pybullet(name: str) -> Env:
+    from rpo_jax import pybullet_suite
+
+    return pybullet_suite.make(name)
+
+
+def _host_suite_specs() -> dict[str, EnvSpec]:
+    # The suites' modules import their simulators only when an environment is built, so their
+    # static specs are available without the optional dependencies. They import this module,
+    # hence the import here rather than at the top.
+    from rpo_jax import dmc_suite, gym_suite, pybullet_suite
+
+    return gym_suite.SPECS | pybullet_suite.SPECS | dmc_suite.SPECS
+
+
+REGISTRY: dict[str, Callable[[], Env]] = (
+    {"cartpole": Cartpole}
+    | {f"brax/{name}": (lambda name=name: BraxEnv(name)) for name in BRAX_ENVS}
+    | {f"gym/{name}": (lambda name=name: _gym(name)) for name in ("Pendulum-v1", "BipedalWalker-v3")}
+    | {f"pybullet/{name}": (lambda name=name: _pybullet(name)) for name in ("Ant", "Minitaur")}
+    | {f"dmc/{task}": (lambda task=task: _dmc(task)) for task in dmc_tasks.TASKS}
+)
 REGISTRY["ballbalance"] = lambda: importlib.import_module("rpo_jax.ballbalance").BallBalance()  # imports envs
 
 
+# Observation size, action size and backend of Brax's environments, so that listing them does
+# not build their systems (minutes on a CPU); tests/test_registry.py checks them against the
+# built environments.
+BRAX_SPECS = {
+    "ant": (27, 8, "generalized"), "fast": (2, 1, "default"), "halfcheetah": (17, 6, "generalized"),
+    "hopper": (11, 3, "generalized"), "humanoid": (244, 17, "generalized"),
+    "humanoidstandup": (244, 17, "generalized"), "inverted_double_pendulum": (8, 1, "generalized"),
+    "inverted_pendulum": (4, 1, "generalized"), "pusher": (23, 7, "generalized"),
+    "reacher": (11, 2, "generalized"), "swimmer": (8, 2, "generalized"), "walker2d": (17, 6, "generalized"),
+}  # fmt: skip
+
+
+def env_spec(name: str) -> EnvSpec:
+    """The static facts of `name` without building it (or its optional dependencies)."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown env {name!r}; valid names: {', '.join(REGISTRY)}")
+    if name.startswith("brax/"):
+        obs_size, action_size, backend = BRAX_SPECS[name.removeprefix("brax/")]
+        high = (1.0,) * action_size
+        return EnvSpec(name, obs_size, action_size, tuple(-h for h in high), high, 1000, f"brax-{backend}")
+    host_specs = _host_suite_specs()
+    if name in host_specs:
+        return host_specs[name]
+    spec = getattr(REGISTRY[name], "spec", None)
+    return spec if isinstance(spec, EnvSpec) else REGISTRY[name]().spec
+
+
 def make_env(name: str) -> Env:
-    """The single (unbatched) environment registered under `name`."""
+    """The environment registered under `name`: a single (unbatched) JAX environment, or a
+    host-side one (`host.HostEnv`) that only exists batched. `vectorize` batches either.
+    A missing optional dependency raises `MissingExtraError` (a ValueError) naming the
+    extra to install."""
     if name not in REGISTRY:
         raise ValueError(f"unknown env {name!r}; valid names: {', '.join(REGISTRY)}")
     return REGISTRY[name]()
 
 
+def vectorize(env: Env, num_envs: int) -> Env:
+    """`num_envs` auto-resetting copies of `env` behind the batched protocol: vmapped for a JAX
+    environment, a pool of host simulators for a host-side one."""
+    return env.vectorize(num_envs) if hasattr(env, "vectorize") else VectorEnv(env, num_envs)
+
+
 def make_vector_env(name: str, num_envs: int) -> Env:
     """`num_envs` auto-resetting copies of `name` behind the batched protocol."""
-    return VectorEnv(make_env(name), num_envs)
+    return vectorize(make_env(name), num_envs)
 
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m rpo_jax.envs`: one line per registered environment."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv:
+        print(f"error: python -m rpo_jax.envs takes no arguments, got {' '.join(argv)}", file=sys.stderr)
+        return 2
+    rows = [("name", "backend", "obs", "act", "episode")]
+    for name in REGISTRY:
+        spec = env_spec(name)
+        rows.append((name, spec.backend, str(spec.observation_size), str(spec.action_size), str(spec.max_episode_steps)))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -372,7 +372,7 @@ def wrap_for_training(env: envs.Env, config: Config) -> envs.Env:
     has `num_envs`), else `config.num_envs` vmapped copies. The observation normaliser is
     outermost so that its statistics sit at `env_state.obs_stats`, where saved policies read them."""
     if not hasattr(env, "num_envs"):
-        env = envs.VectorEnv(env, config.num_envs)
+        env = envs.vectorize(env, config.num_envs)
     elif env.num_envs != config.num_envs:
         raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {config.num_envs}")
     vec = envs.EpisodeStatistics(env)

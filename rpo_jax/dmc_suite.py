@@ -1,0 +1,98 @@
+"""DeepMind Control (`dmc/<domain>-<task>`) stepped on the host by envpool's C++ port of the
+suite, which runs real MuJoCo (linked into envpool) on a pool of threads.
+
+Why envpool and not dm_control: dm_control 1.0.50, the newest release, does not run on the
+MuJoCo 4 that rpo_jax pins (it indexes MjModel fields that 4.0 removed), and stepping it in
+Python costs about as much per step as the physics. envpool bundles its own MuJoCo build, so it
+is independent of the pinned `mujoco`. Its DMC tasks follow dm_control's models, rewards and
+1000-step episodes; tests/test_dmc.py checks observation layouts and the returns of a fixed
+action sequence against figures that benchmarks/dmc_reference.py took from dm_control.
+
+envpool's XLA interface (FFI custom calls) would keep stepping inside the compiled program,
+but its pools are fixed (and seeded) when they are built and named by a static attribute of the
+call, so a program vmapped over runs cannot give each run its own pool seeded from its key. The
+pools are therefore stepped through `host.HostEnv`'s callbacks.
+
+Observations are flattened the way dm_control's wrappers do it: the task's observation keys in
+dm_control's order (the order its `get_observation` fills the dict, listed in `TASKS`), each
+flattened and concatenated. envpool reports a domain's union of keys for every task of the
+domain (e.g. humanoid's `position` for humanoid-walk, quadruped's ball and target for
+quadruped-walk); those extra keys are left out. Episodes end by truncation at 1000 steps
+(discount 1 at the last step); a last step with discount 0 would be a termination.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from rpo_jax.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
+from rpo_jax.envs import EnvSpec, MissingExtraError
+from rpo_jax.host import HostEnv
+
+
+def _spec(task: str) -> EnvSpec:
+    action_size, keys = TASKS[task]
+    domain = task.split("-")[0]
+    bounds = ACTION_BOUNDS.get(domain, 1.0)
+    low, high = ((-bounds,) * action_size, (bounds,) * action_size) if isinstance(bounds, float) else bounds
+    return EnvSpec(f"dmc/{task}", sum(size for _, size in keys), action_size, low, high, EPISODE_STEPS, "host")
+
+
+SPECS = {f"dmc/{task}": _spec(task) for task in TASKS}
+
+
+def envpool_task_id(task: str) -> str:
+    """envpool's id of a dm_control task: 'walker-walk' -> 'WalkerWalk-v1'."""
+    camel = "".join(part[:1].upper() + part[1:] for part in task.replace("-", "_").split("_"))
+    return f"{camel}-v1"
+
+
+class DmcSimulators:
+    """One envpool pool of `num_envs` copies of a task, auto-reset within the step."""
+
+    def __init__(self, task: str, num_envs: int, seed: int) -> None:
+        import envpool
+
+        self.keys = [key for key, _ in TASKS[task][1]]
+        self.env_ids = np.arange(num_envs)
+        # More threads than cores only adds switching; envpool seeds env i with seed + i.
+        threads = min(num_envs, os.cpu_count() or 1)
+        self.pool = envpool.make_dm(envpool_task_id(task), num_envs=num_envs, num_threads=threads, seed=seed)
+
+    def _flatten(self, observation: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(env ids, observations [n, obs]) of one envpool result, in dm_control's key order."""
+        obs = np.concatenate(
+            [np.asarray(getattr(observation, key)).reshape(len(observation.env_id), -1) for key in self.keys], axis=1
+        )
+        return np.asarray(observation.env_id), obs
+
+    def reset(self) -> np.ndarray:
+        env_id, obs = self._flatten(self.pool.reset(self.env_ids).observation)
+        return obs[np.argsort(env_id)]
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        ts = self.pool.step(np.asarray(action, np.float64), self.env_ids)
+        env_id, reached = self._flatten(ts.observation)
+        order = np.argsort(env_id)
+        reached = reached[order]
+        last = np.asarray(ts.step_type)[order] == 2  # dm_env.StepType.LAST
+        discount = np.asarray(ts.discount)[order]
+        reward = np.asarray(ts.reward)[order]
+        obs = reached.copy()
+        if last.any():
+            # Reset now rather than on envpool's next step, so the next action is taken in the
+            # new episode, as the protocol's auto-reset requires.
+            fresh_id, fresh = self._flatten(self.pool.reset(np.flatnonzero(last)).observation)
+            obs[fresh_id] = fresh
+        return obs, reward, last & (discount == 0), last & (discount > 0), reached
+
+
+def make(task: str) -> HostEnv:
+    try:
+        import envpool  # noqa: F401
+    except ImportError:
+        raise MissingExtraError(f"dmc/{task}", "envpool", "dmc") from None
+    return HostEnv(SPECS[f"dmc/{task}"], lambda num_envs, seed: DmcSimulators(task, num_envs, seed))

@@ -1,0 +1,79 @@
+"""OpenAI Gym's tasks of the paper: `gym/Pendulum-v1` in JAX (gymnax's port), so its whole
+training stays one jitted program, and `gym/BipedalWalker-v3` on the host (Gymnasium's Box2D
+task, which has no JAX port). Gym's time limits (200 and 1600 steps) are truncations."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rpo_jax.envs import EnvSpec, MissingExtraError, TimeStep, _first_step
+from rpo_jax.host import HostEnv, SequentialSimulators
+
+PENDULUM_SPEC = EnvSpec("gym/Pendulum-v1", 3, 1, (-2.0,), (2.0,), 200, "jax")
+BIPEDAL_WALKER_SPEC = EnvSpec("gym/BipedalWalker-v3", 24, 4, (-1.0,) * 4, (1.0,) * 4, 1600, "host")
+SPECS = {spec.name: spec for spec in (PENDULUM_SPEC, BIPEDAL_WALKER_SPEC)}
+
+
+class Pendulum:
+    """Gym's Pendulum-v1 as gymnax implements it: observation (cos th, sin th, th_dot), torque
+    in [-2, 2], reward -(th^2 + 0.1 th_dot^2 + 0.001 u^2), no termination. gymnax's own `done`
+    (its time limit) is dropped; `envs.TimeLimit` truncates after 200 steps instead."""
+
+    spec = PENDULUM_SPEC
+
+    def __init__(self) -> None:
+        try:
+            import gymnax
+        except ImportError:
+            raise MissingExtraError(self.spec.name, "gymnax", "gym") from None
+        self.env, self.params = gymnax.make("Pendulum-v1")
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        obs, state = self.env.reset_env(key, self.params)
+        return state, _first_step(obs)
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        # Pendulum's dynamics draw no randomness; the key is only part of gymnax's signature.
+        obs, state, reward, _, _ = self.env.step_env(jax.random.PRNGKey(0), state, action, self.params)
+        false = jnp.zeros((), bool)
+        return state, TimeStep(obs, reward.astype(jnp.float32), false, false, obs)
+
+
+def _bipedal_walker(index: int, seed: int) -> Any:
+    import gymnasium
+
+    # The default wrappers: Gym's TimeLimit (1600 steps, reported as truncation) and its
+    # order and argument checks.
+    env = gymnasium.make("BipedalWalker-v3")
+    env.reset(seed=int(np.random.SeedSequence([seed, index]).generate_state(1)[0]))
+    return env
+
+
+def _reset(env: Any) -> np.ndarray:
+    return env.reset()[0]
+
+
+def _step(env: Any, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+    obs, reward, terminated, truncated, _ = env.step(action)
+    return obs, reward, terminated, truncated
+
+
+def bipedal_walker() -> HostEnv:
+    """Gymnasium's BipedalWalker-v3 (Box2D), stepped on the host."""
+    missing = MissingExtraError(BIPEDAL_WALKER_SPEC.name, "gymnasium[box2d]", "gym")
+    try:
+        import gymnasium
+    except ImportError:
+        raise missing from None
+    try:
+        import gymnasium.envs.box2d  # noqa: F401  (needs Box2D and pygame)
+    except (ImportError, gymnasium.error.DependencyNotInstalled):
+        raise missing from None
+    return HostEnv(
+        BIPEDAL_WALKER_SPEC,
+        lambda num_envs, seed: SequentialSimulators(num_envs, seed, _bipedal_walker, _reset, _step),
+    )

@@ -1,0 +1,138 @@
+"""Simulators that run on the host (Box2D, PyBullet, MuJoCo through envpool) behind the batched
+environment protocol, so that the trainer's jitted program drives them unchanged.
+
+`HostEnv.reset` and `HostEnv.step` are `jax.experimental.io_callback`s. The environment state
+that JAX carries is one integer, the handle of a pool of `num_envs` simulators that lives in
+this process; `reset(key)` builds a new pool seeded from `key` and returns its handle. The
+callbacks are unordered: the order of steps within a run is fixed by data (each step's action
+depends on the previous step's observation), and unordered callbacks can be vmapped, which
+ordered ones cannot. Under `jax.vmap` over runs (train.py's seeds and sweep points) JAX calls
+them once per run, in turn, each with that run's handle, so every run steps its own pool and
+the same key always gives the same episodes.
+
+The simulators auto-reset in the same step and keep the episode's last observation as
+`final_obs`, as `envs.VectorEnv` does for JAX environments, and report their own time limits
+as truncations.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Callable, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax.experimental import io_callback
+
+from rpo_jax.envs import EnvSpec, TimeStep, _first_step
+
+
+class HostSimulators(Protocol):
+    """`num_envs` simulators stepped together on the host; numpy in, numpy out."""
+
+    def reset(self) -> np.ndarray:
+        """First observations [N, obs] of fresh episodes."""
+        ...
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        """action [N, act] -> (obs, reward, terminated, truncated, final_obs). An environment
+        whose episode ended starts a new one: `obs` is its first observation, `final_obs` the
+        one the step reached."""
+        ...
+
+
+# (num_envs, seed) -> a fresh pool whose randomness follows from seed alone.
+SimulatorFactory = Callable[[int, int], HostSimulators]
+
+
+@struct.dataclass
+class HostState:
+    handle: jax.Array  # [] int32: the pool of simulators this run steps
+
+
+class HostEnv:
+    """An environment registered for host-side stepping, before its batch size is chosen.
+
+    `envs.make_env` returns one of these for a host suite; `vectorize(num_envs)` gives the
+    batched environment that the trainer steps (`envs.vectorize` does it for any env)."""
+
+    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory) -> None:
+        self.spec, self.make_simulators = spec, make_simulators
+
+    def vectorize(self, num_envs: int) -> "BatchedHostEnv":
+        return BatchedHostEnv(self.spec, self.make_simulators, num_envs)
+
+
+class BatchedHostEnv:
+    """`num_envs` host simulators behind the batched protocol; see the module's docstring."""
+
+    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int) -> None:
+        self.spec, self.make_simulators, self.num_envs = spec, make_simulators, num_envs
+        self.pools: dict[int, HostSimulators] = {}
+        self.handles = itertools.count()
+        n, obs_size = num_envs, spec.observation_size
+        obs = jax.ShapeDtypeStruct((n, obs_size), jnp.float32)
+        flag = jax.ShapeDtypeStruct((n,), jnp.bool_)
+        self.reset_shapes = (jax.ShapeDtypeStruct((), jnp.int32), obs)
+        self.step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
+
+    def _host_reset(self, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        handle = next(self.handles)
+        pool = self.make_simulators(self.num_envs, int(seed))
+        self.pools[handle] = pool
+        return np.asarray(handle, np.int32), np.asarray(pool.reset(), np.float32)
+
+    def _host_step(self, handle: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        obs, reward, terminated, truncated, final_obs = self.pools[int(handle)].step(np.asarray(action))
+        return (
+            np.asarray(obs, np.float32),
+            np.asarray(reward, np.float32),
+            np.asarray(terminated, np.bool_),
+            np.asarray(truncated, np.bool_),
+            np.asarray(final_obs, np.float32),
+        )
+
+    def reset(self, key: jax.Array) -> tuple[HostState, TimeStep]:
+        # Drawn in JAX so that raw and typed keys both work; below 2^30 so that a simulator that
+        # seeds environment i with seed + i (envpool) stays within int32.
+        seed = jax.random.randint(key, (), 0, 2**30, dtype=jnp.int32)
+        handle, obs = io_callback(self._host_reset, self.reset_shapes, seed)
+        return HostState(handle), _first_step(obs)
+
+    def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
+        obs, reward, terminated, truncated, final_obs = io_callback(
+            self._host_step, self.step_shapes, state.handle, action.astype(jnp.float32)
+        )
+        return state, TimeStep(obs, reward, terminated, truncated, final_obs)
+
+
+class SequentialSimulators:
+    """A list of single-environment simulators stepped one after another in Python, each
+    auto-reset when its episode ends. `make_one(index, seed)` builds one; `reset_one(sim)`
+    and `step_one(sim, action)` follow Gymnasium's reset/step signatures."""
+
+    def __init__(
+        self,
+        num_envs: int,
+        seed: int,
+        make_one: Callable[[int, int], object],
+        reset_one: Callable[[object], np.ndarray],
+        step_one: Callable[[object, np.ndarray], tuple[np.ndarray, float, bool, bool]],
+    ) -> None:
+        self.sims = [make_one(i, seed) for i in range(num_envs)]
+        self.reset_one, self.step_one = reset_one, step_one
+
+    def reset(self) -> np.ndarray:
+        return np.stack([self.reset_one(sim) for sim in self.sims])
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        n = len(self.sims)
+        reward, terminated, truncated = np.zeros(n), np.zeros(n, bool), np.zeros(n, bool)
+        obs, final_obs = [], []
+        for i, sim in enumerate(self.sims):
+            reached, reward[i], terminated[i], truncated[i] = self.step_one(sim, action[i])
+            final_obs.append(reached)
+            obs.append(self.reset_one(sim) if terminated[i] or truncated[i] else reached)
+        return np.stack(obs), reward, terminated, truncated, np.stack(final_obs)

@@ -1,0 +1,139 @@
+"""DeepMind Control on the host (envpool) against dm_control's own figures, taken by
+benchmarks/dmc_reference.py into tests/data/. Skipped without the `dmc` extra except for the
+checks of the static task table."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from rpo_jax import dmc_tasks, envs
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = json.loads((ROOT / "tests" / "data" / "dmc_reference.json").read_text())
+SAME_START = json.loads((ROOT / "tests" / "data" / "dmc_same_start.json").read_text())
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from dmc_reference import PAPER_TASKS, SAME_START_EPISODES, SAME_START_SEED, fixed_actions  # noqa: E402
+
+# quadruped-escape builds its random terrain for a minute per pool: slow tests only.
+QUICK_TASKS = ("walker-walk", "fish-swim", "humanoid-run", "quadruped-walk")
+
+
+def test_task_table_is_dm_controls():
+    assert set(dmc_tasks.TASKS) == set(REFERENCE["tasks"])
+    assert set(PAPER_TASKS) <= set(dmc_tasks.TASKS) and len(PAPER_TASKS) == 12
+    for task, (action_size, keys) in dmc_tasks.TASKS.items():
+        reference = REFERENCE["tasks"][task]
+        assert [list(key) for key in keys] == reference["obs"], task
+        spec = envs.env_spec(f"dmc/{task}")
+        assert spec.action_size == action_size == len(reference["action_low"])
+        np.testing.assert_allclose(spec.action_low, reference["action_low"], err_msg=task)
+        np.testing.assert_allclose(spec.action_high, reference["action_high"], err_msg=task)
+        assert spec.observation_size == sum(size for _, size in keys) and spec.max_episode_steps == 1000
+
+
+def fixed_action_returns(task: str, episodes: int = 8, seed: int = 12345, first_obs: list | None = None) -> np.ndarray:
+    from rpo_jax.dmc_suite import SPECS, DmcSimulators
+
+    spec = SPECS[f"dmc/{task}"]
+    simulators = DmcSimulators(task, episodes, seed)
+    first = simulators.reset()
+    assert first.shape == (episodes, spec.observation_size)
+    if first_obs is not None:
+        np.testing.assert_array_equal(first, first_obs)
+    returns = np.zeros(episodes)
+    for step, action in enumerate(fixed_actions(1000, np.array(spec.action_low), np.array(spec.action_high))):
+        _, reward, terminated, truncated, final_obs = simulators.step(np.broadcast_to(action, (episodes, len(action))))
+        assert np.isfinite(final_obs).all() and ((reward >= 0) & (reward <= 1)).all()
+        assert not terminated.any() and truncated.all() == (step == 999)
+        returns += reward
+    return returns
+
+
+def assert_agrees_with_dm_control(task: str) -> None:
+    """The mean fixed-action return lies within 4 standard errors (plus 5% and 0.5 for tasks
+    whose return is nearly 0) of dm_control's. Starts are random in every DMC task and the two
+    implementations draw them from different generators, so this compares distributions."""
+    reference = REFERENCE["tasks"][task]
+    returns = fixed_action_returns(task)
+    mean, reference_mean = returns.mean(), reference["fixed_action_return_mean"]
+    error = np.sqrt(returns.var() / len(returns) + reference["fixed_action_return_std"] ** 2 / REFERENCE["seeds"])
+    assert abs(mean - reference_mean) <= 4 * error + 0.05 * abs(reference_mean) + 0.5, (
+        task,
+        mean,
+        reference_mean,
+        error,
+    )
+
+
+@pytest.mark.parametrize("task", sorted(SAME_START["tasks"]))
+def test_from_the_same_start_the_returns_are_dm_controls(task):
+    """Starting where dm_control was put (envpool's seeded first observations, which determine
+    these tasks' joint states), the fixed-action returns match dm_control's."""
+    pytest.importorskip("envpool")
+    reference = SAME_START["tasks"][task]
+    assert SAME_START["seed"] == SAME_START_SEED
+    returns = fixed_action_returns(task, SAME_START_EPISODES, SAME_START_SEED, reference["first_obs"])
+    np.testing.assert_allclose(returns, reference["returns"], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("task", QUICK_TASKS)
+def test_returns_of_a_fixed_action_sequence_agree_with_dm_control(task):
+    pytest.importorskip("envpool")
+    assert_agrees_with_dm_control(task)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", sorted(set(PAPER_TASKS) - set(QUICK_TASKS)))
+def test_returns_of_a_fixed_action_sequence_agree_with_dm_control_on_every_paper_task(task):
+    pytest.importorskip("envpool")
+    assert_agrees_with_dm_control(task)
+
+
+def test_stepped_by_the_trainer_same_key_same_episodes_truncated_at_1000():
+    pytest.importorskip("envpool")
+    env = envs.make_vector_env("dmc/walker-walk", 2)
+    actions = jax.random.uniform(jax.random.PRNGKey(0), (1001, 2, 6), minval=-1.0, maxval=1.0)
+
+    def run(key):
+        state, first = env.reset(key)
+        return first, jax.lax.scan(env.step, state, actions)[1]
+
+    run = jax.jit(run)
+    first, traj = run(jax.random.PRNGKey(1))
+    _, again = run(jax.random.PRNGKey(1))
+    assert first.obs.shape == (2, 24) and np.isfinite(traj.obs).all()
+    truncated = np.asarray(traj.truncated)
+    assert truncated[999].all() and truncated.sum() == 2 and not np.asarray(traj.terminated).any()
+    # The step after the truncation is the first of a new episode.
+    assert not np.allclose(traj.obs[999], traj.final_obs[999])
+    reward = np.asarray(traj.reward)
+    assert ((reward >= 0) & (reward <= 1)).all()
+    np.testing.assert_array_equal(reward, again.reward)
+    np.testing.assert_array_equal(traj.obs, again.obs)
+
+
+def test_trains_two_seeds_from_the_command_line(tmp_path):
+    pytest.importorskip("envpool")
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [
+            sys.executable, "-m", "rpo_jax.train", "--env", "dmc/walker-walk", "--num-envs", "4",
+            "--num-steps", "32", "--num-minibatches", "2", "--update-epochs", "1", "--total-timesteps", "256",
+            "--num-seeds", "2", "--quiet", "--out", str(out),
+        ],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_seeds"] == 2 and np.isfinite(summary["sps"])
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert {row["seed"] for row in rows} == {1, 2}
+    for row in rows:
+        assert all(np.isfinite(value) for value in row.values() if isinstance(value, float)), row

@@ -1,0 +1,150 @@
+"""Host-side environments behind the batched protocol (rpo_jax.host), the registry's listing
+and its errors for missing optional dependencies. Needs no optional dependency: the host
+simulator here is a few lines of numpy."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rpo_jax import envs, ppo, train
+from rpo_jax.envs import MissingExtraError
+from rpo_jax.host import HostEnv, SequentialSimulators
+
+EPISODE = 5
+SPEC = envs.EnvSpec("host_point_mass", 2, 1, (-1.0,), (1.0,), EPISODE, "host")
+
+
+class PointMassSim:
+    """A point mass on a line, one simulator in Gymnasium's reset/step style: the episode is
+    truncated after EPISODE steps; reward -position^2."""
+
+    def __init__(self, index: int, seed: int) -> None:
+        self.rng = np.random.default_rng([seed, index])
+
+    def reset(self) -> np.ndarray:
+        self.state, self.t = self.rng.uniform(-1, 1, 2), 0
+        return self.state.copy()
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        velocity = self.state[1] + 0.1 * float(action[0])
+        self.state, self.t = np.array([self.state[0] + 0.1 * velocity, velocity]), self.t + 1
+        return self.state.copy(), -(self.state[0] ** 2), False, self.t >= EPISODE
+
+
+def host_point_mass() -> HostEnv:
+    return HostEnv(
+        SPEC,
+        lambda num_envs, seed: SequentialSimulators(
+            num_envs, seed, PointMassSim, lambda sim: sim.reset(), lambda sim, action: sim.step(action)
+        ),
+    )
+
+
+def rollout(env, key, actions):
+    """Steps a batched env through `actions` [T, N, act] in one jitted scan."""
+
+    def run(key):
+        state, ts = env.reset(key)
+
+        def body(state, action):
+            state, ts = env.step(state, action)
+            return state, ts
+
+        return ts, jax.lax.scan(body, state, actions)[1]
+
+    return jax.jit(run)(key)
+
+
+def test_host_env_auto_resets_and_truncates_inside_a_jitted_scan():
+    env = envs.vectorize(host_point_mass(), 3)
+    assert env.num_envs == 3 and env.spec is SPEC
+    actions = jnp.ones((2 * EPISODE, 3, 1))
+    first, traj = rollout(env, jax.random.PRNGKey(0), actions)
+    assert first.obs.shape == (3, 2) and traj.obs.shape == (2 * EPISODE, 3, 2)
+    truncated = np.asarray(traj.truncated)
+    assert truncated[EPISODE - 1].all() and truncated[2 * EPISODE - 1].all() and truncated.sum() == 6
+    assert not np.asarray(traj.terminated).any()
+    # At the truncating step obs is the new episode's first observation, final_obs the one reached.
+    last = EPISODE - 1
+    assert not np.allclose(traj.obs[last], traj.final_obs[last])
+    np.testing.assert_array_equal(traj.obs[:last], traj.final_obs[:last])
+    np.testing.assert_allclose(traj.reward, -(np.asarray(traj.final_obs)[..., 0] ** 2), rtol=1e-6)
+
+
+def test_same_key_same_episodes_other_key_other_episodes():
+    env = envs.vectorize(host_point_mass(), 3)
+    actions = jnp.zeros((7, 3, 1))
+    a = rollout(env, jax.random.PRNGKey(1), actions)
+    b = rollout(env, jax.random.PRNGKey(1), actions)
+    c = rollout(env, jax.random.PRNGKey(2), actions)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(x, y)
+    assert not np.allclose(a[1].obs, c[1].obs)
+
+
+def test_runs_vmapped_over_seeds_each_step_their_own_simulators():
+    env = envs.vectorize(host_point_mass(), 2)
+    actions = jnp.ones((2 * EPISODE, 2, 1))
+
+    @jax.jit
+    @jax.vmap
+    def runs(key):
+        state, _ = env.reset(key)
+        return jax.lax.scan(env.step, state, actions)
+
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1)])
+    state, traj = runs(keys)
+    assert traj.obs.shape == (2, 2 * EPISODE, 2, 2) and np.asarray(traj.truncated).sum() == 8
+    assert len(set(np.asarray(state.handle).tolist())) == 2
+    # Each run's result depends on its own key only: swapping the keys swaps the runs.
+    _, swapped = runs(keys[::-1])
+    np.testing.assert_array_equal(swapped.obs[::-1], traj.obs)
+    assert not np.array_equal(traj.obs[0], traj.obs[1])
+
+
+def test_trains_on_a_host_env():
+    config = ppo.Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
+    _, metrics = jax.jit(ppo.make_train(config, host_point_mass()))(jax.random.PRNGKey(0))
+    for name, value in vars(metrics).items():
+        assert value.shape == (2,) and np.isfinite(np.asarray(value)).all(), name
+    np.testing.assert_allclose(metrics.episode_length, EPISODE)
+
+
+def test_missing_extra_is_a_one_line_value_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "envpool", None)  # makes `import envpool` fail
+    with pytest.raises(ValueError, match=r"pip install -e '\.\[dmc\]'") as error:
+        envs.make_env("dmc/walker-walk")
+    assert isinstance(error.value, MissingExtraError) and "\n" not in str(error.value)
+
+
+def test_train_without_the_extra_exits_2_with_one_line(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "envpool", None)
+    assert train.main(["--env", "dmc/walker-walk", "--quiet", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "error: env 'dmc/walker-walk' needs envpool, which is not installed: pip install -e '.[dmc]'"
+    assert not (tmp_path / "run").exists()
+
+
+def test_listing_names_every_env_with_its_sizes_without_building_them():
+    result = subprocess.run(
+        [sys.executable, "-m", "rpo_jax.envs"], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert result.stderr == ""
+    rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[1:]}
+    assert list(rows) == list(envs.REGISTRY)
+    for name in ("gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "pybullet/Minitaur", "dmc/walker-walk"):
+        spec = envs.env_spec(name)
+        assert rows[name] == [
+            spec.backend,
+            str(spec.observation_size),
+            str(spec.action_size),
+            str(spec.max_episode_steps),
+        ]
+    assert rows["dmc/walker-walk"] == ["host", "24", "6", "1000"]
+    assert rows["cartpole"] == ["mjx", "4", "1", "500"]
