@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> Path:
     definition = resolve(args)
     out = args.out or Path("experiments") / args.name
     prepare_out(out, definition)
-    jobs = [Job(**{**job, "flags": tuple(job["flags"]), "sweep": _sweep(job["sweep"])}) for job in definition["jobs"]]
+    jobs = EXPERIMENTS[args.name].jobs  # experiment.json holds the same, prepare_out checked it
     parser = train.build_parser()
     total = len(definition["envs"]) * len(jobs)
     for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
@@ -205,10 +205,6 @@ def run(args: argparse.Namespace) -> Path:
         report.write_results(out, collect_rows(out, definition, jobs))
     report.build(out, [out])
     return out
-
-
-def _sweep(sweep: list | None) -> tuple[str, tuple[float, ...]] | None:
-    return (sweep[0], tuple(sweep[1])) if sweep else None
 
 
 def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:

@@ -73,7 +73,7 @@ def read_results(directory: Path) -> list[dict]:
 
 
 def tail_mean(values: Sequence[float]) -> float:
-    """Mean over the last 10% of logged updates (at least one), as rpo_jax.train's final return."""
+    """Mean over the last 10% of logged updates (at least one): a run's final return or entropy."""
     tail = max(1, math.ceil(len(values) / 10))
     return float(np.mean(values[-tail:]))
 
@@ -135,7 +135,7 @@ def _slug(env: str) -> str:
     return env.replace("/", "_")
 
 
-def write_figures(rows: Sequence[dict], summary: dict, scores: dict, figures: Path) -> list[str]:
+def write_figures(rows: Sequence[dict], scores: dict, figures: Path) -> list[str]:
     """The PNG files, as paths relative to the report."""
     import matplotlib
 
@@ -227,7 +227,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     scores = normalised_scores(summary)
     envs = unique(row["env"] for row in rows)
     variants = unique(row["variant"] for row in rows)
-    figures = write_figures(rows, summary, scores, out / FIGURES_DIR) if rows else []
+    figures = write_figures(rows, scores, out / FIGURES_DIR) if rows else []
 
     best_return = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["return_mean"]) for env in envs}
     best_entropy = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["entropy_mean"]) for env in envs}

@@ -36,6 +36,7 @@ from rpo_jax import envs, ppo
 from rpo_jax.cli import ArgumentParser, UsageError, write_json
 from rpo_jax.checkpoint import CheckpointMismatch, Checkpointer
 from rpo_jax.policy import PARAMS_FILE
+from rpo_jax.report import tail_mean
 
 ALGOS = ("ppo", "rpo", "rad", "drac")
 DEFAULT_RPO_ALPHA = 0.5
@@ -169,12 +170,6 @@ def chunk_length(num_updates: int, target_chunks: int = 50) -> int:
     has the same length, so the chunk program compiles once."""
     limit = max(1, num_updates // target_chunks)
     return max(d for d in range(1, limit + 1) if num_updates % d == 0)
-
-
-def final_return(returns: Sequence[float]) -> float:
-    """Mean episode return over the last 10% of logged updates (at least one)."""
-    tail = max(1, math.ceil(len(returns) / 10))
-    return float(np.mean(returns[-tail:]))
 
 
 def versions() -> dict[str, str]:
@@ -431,7 +426,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     os.replace(tmp, out / PARAMS_FILE)
 
     for run, returns in zip(runs, logged_returns):
-        run["final_return"] = final_return(returns)
+        run["final_return"] = tail_mean(returns)
     grid_summary = []
     for index, point in enumerate(grid):
         finals = [run["final_return"] for run in runs[index * plan.num_seeds : (index + 1) * plan.num_seeds]]

@@ -13,7 +13,8 @@ from flax import serialization
 from rpo_jax import envs, load_policy, ppo
 from rpo_jax.networks import policy_distribution
 from rpo_jax.policy import PARAMS_FILE
-from rpo_jax.train import chunk_length, final_return
+from rpo_jax.report import tail_mean as final_return
+from rpo_jax.train import chunk_length
 
 TINY = [
     "--env", "cartpole", "--algo", "rpo", "--num-envs", "8", "--num-steps", "16",
