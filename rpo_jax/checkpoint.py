@@ -11,10 +11,12 @@ process killed mid-write leaves the previous checkpoint as the latest one.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import orbax.checkpoint as ocp
 
 CHECKPOINT_DIR = "checkpoints"
@@ -33,6 +35,25 @@ def _layout(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
     }
 
 
+def _is_empty(leaf: Any) -> bool:
+    return math.prod(leaf.shape) == 0
+
+
+def _without_empty(tree: Any) -> Any:
+    """`tree` with its zero-size arrays (e.g. MJX's `act` of a model without activations) as
+    None: orbax refuses to write them, and they hold no data to keep."""
+    return jax.tree.map(lambda leaf: None if _is_empty(leaf) else leaf, tree)
+
+
+def _with_empty(restored: Any, abstract_state: Any) -> Any:
+    """Puts the zero-size arrays of `abstract_state` back into a tree restored without them."""
+    saved = iter(jax.tree.leaves(restored))
+    leaves, treedef = jax.tree.flatten(abstract_state)
+    return treedef.unflatten(
+        [jnp.zeros(leaf.shape, leaf.dtype) if _is_empty(leaf) else next(saved) for leaf in leaves]
+    )
+
+
 class Checkpointer:
     """Saves and restores the batched training state of one run directory, keeping the last two."""
 
@@ -49,7 +70,10 @@ class Checkpointer:
 
     def save(self, update: int, state: Any, record: dict[str, Any]) -> None:
         self.manager.save(
-            update, args=ocp.args.Composite(state=ocp.args.StandardSave(state), record=ocp.args.JsonSave(record))
+            update,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(_without_empty(state)), record=ocp.args.JsonSave(record)
+            ),
         )
         self.manager.wait_until_finished()
 
@@ -59,7 +83,7 @@ class Checkpointer:
         update = self.manager.latest_step()
         saved = self.manager.item_metadata(update)["state"]
         saved_layout = {leaf.name: (tuple(leaf.shape), str(leaf.dtype)) for leaf in jax.tree.leaves(saved)}
-        wanted = _layout(abstract_state)
+        wanted = _layout(_without_empty(abstract_state))
         if saved_layout != wanted:
             differences = sorted(
                 f"{name}: saved {saved_layout.get(name, 'nothing')}, config needs {wanted.get(name, 'nothing')}"
@@ -72,9 +96,11 @@ class Checkpointer:
             )
         restored = self.manager.restore(
             update,
-            args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_state), record=ocp.args.JsonRestore()),
+            args=ocp.args.Composite(
+                state=ocp.args.StandardRestore(_without_empty(abstract_state)), record=ocp.args.JsonRestore()
+            ),
         )
-        return restored.state, restored.record
+        return _with_empty(restored.state, abstract_state), restored.record
 
     def close(self) -> None:
         self.manager.close()

@@ -63,6 +63,20 @@ TASKS: dict[str, tuple[int, tuple[tuple[str, int], ...]]] = {
 QUADRUPED_BOUNDS = ((-1.0, -1.0, -0.8) * 4, (1.0, 1.1, 0.8) * 4)
 ACTION_BOUNDS = {"lqr": 1e10, "quadruped": QUADRUPED_BOUNDS}
 
+# The tasks that MuJoCo Playground ports to MJX (`mjx-dmc/<task>`), with Playground's names.
+PLAYGROUND_NAMES = {
+    "acrobot-swingup": "AcrobotSwingup", "acrobot-swingup_sparse": "AcrobotSwingupSparse",
+    "ball_in_cup-catch": "BallInCup", "cartpole-balance": "CartpoleBalance",
+    "cartpole-balance_sparse": "CartpoleBalanceSparse", "cartpole-swingup": "CartpoleSwingup",
+    "cartpole-swingup_sparse": "CartpoleSwingupSparse", "cheetah-run": "CheetahRun",
+    "finger-spin": "FingerSpin", "finger-turn_easy": "FingerTurnEasy", "finger-turn_hard": "FingerTurnHard",
+    "fish-swim": "FishSwim", "hopper-hop": "HopperHop", "hopper-stand": "HopperStand",
+    "humanoid-stand": "HumanoidStand", "humanoid-walk": "HumanoidWalk", "humanoid-run": "HumanoidRun",
+    "pendulum-swingup": "PendulumSwingup", "point_mass-easy": "PointMass", "reacher-easy": "ReacherEasy",
+    "reacher-hard": "ReacherHard", "swimmer-swimmer6": "SwimmerSwimmer6", "walker-stand": "WalkerStand",
+    "walker-walk": "WalkerWalk", "walker-run": "WalkerRun",
+}  # fmt: skip
+
 # The paper's twelve tasks.
 PAPER_TASKS = (
     "acrobot-swingup", "fish-swim", "hopper-hop", "humanoid-stand", "humanoid-run", "pendulum-swingup",

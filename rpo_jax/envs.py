@@ -193,12 +193,28 @@ class Cartpole:
 
 
 # --------------------------------------------------------------------------------------------
-# Brax environments
+# Brax and MuJoCo Playground environments
 
 
-class BraxEnv:
-    """One of Brax's own environments (`brax/<name>`). Brax's `done` is a termination; the
-    time limit is added by `TimeLimit` with Brax's usual 1000 steps."""
+class DoneIsTermination:
+    """Adapts `self.env`, whose `reset(key)` and `step(state, action)` return a state with `obs`,
+    `reward` and `done` (Brax's and MuJoCo Playground's environments), to the protocol: `done`
+    is a termination, and the time limit is left to `TimeLimit`."""
+
+    env: Any
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        state = self.env.reset(key)
+        return state, _first_step(state.obs)
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        state = self.env.step(state, action)
+        terminated = state.done.astype(bool)
+        return state, TimeStep(state.obs, state.reward, terminated, jnp.zeros((), bool), state.obs)
+
+
+class BraxEnv(DoneIsTermination):
+    """One of Brax's own environments (`brax/<name>`), with Brax's usual 1000-step episodes."""
 
     def __init__(self, name: str, backend: str | None = None) -> None:
         from brax import envs as brax_envs
@@ -220,15 +236,6 @@ class BraxEnv:
     @staticmethod
     def qpos(state: Any) -> jax.Array:
         return state.pipeline_state.q
-
-    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
-        state = self.env.reset(key)
-        return state, _first_step(state.obs)
-
-    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
-        state = self.env.step(state, action)
-        terminated = state.done.astype(bool)
-        return state, TimeStep(state.obs, state.reward, terminated, jnp.zeros((), bool), state.obs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -378,10 +385,16 @@ class RunningMeanStd:
         m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / count
         return RunningMeanStd(mean, m2 / count, count)
 
+    def standardize(self, x: jax.Array) -> jax.Array:
+        return (x - self.mean) / jnp.sqrt(self.var + 1e-8)
+
+    def unstandardize(self, x: jax.Array) -> jax.Array:
+        return x * jnp.sqrt(self.var + 1e-8) + self.mean
+
 
 def normalize_observation(obs: jax.Array, stats: RunningMeanStd, clip: float) -> jax.Array:
     """(obs - mean) / std, clipped to +-clip. obs: [..., obs_size]."""
-    return jnp.clip((obs - stats.mean) / jnp.sqrt(stats.var + 1e-8), -clip, clip)
+    return jnp.clip(stats.standardize(obs), -clip, clip)
 
 
 @struct.dataclass
@@ -484,13 +497,19 @@ def _pybullet(name: str) -> Env:
     return pybullet_suite.make(name)
 
 
-def _host_suite_specs() -> dict[str, EnvSpec]:
+def _mjx_dmc(task: str) -> Env:
+    from rpo_jax import playground_suite
+
+    return playground_suite.PlaygroundEnv(task)
+
+
+def _suite_specs() -> dict[str, EnvSpec]:
     # The suites' modules import their simulators only when an environment is built, so their
     # static specs are available without the optional dependencies. They import this module,
     # hence the import here rather than at the top.
-    from rpo_jax import dmc_suite, gym_suite, pybullet_suite
+    from rpo_jax import dmc_suite, gym_suite, playground_suite, pybullet_suite
 
-    return gym_suite.SPECS | pybullet_suite.SPECS | dmc_suite.SPECS
+    return gym_suite.SPECS | pybullet_suite.SPECS | dmc_suite.SPECS | playground_suite.SPECS
 
 
 REGISTRY: dict[str, Callable[[], Env]] = (
@@ -499,6 +518,7 @@ REGISTRY: dict[str, Callable[[], Env]] = (
     | {f"gym/{name}": (lambda name=name: _gym(name)) for name in ("Pendulum-v1", "BipedalWalker-v3")}
     | {f"pybullet/{name}": (lambda name=name: _pybullet(name)) for name in ("Ant", "Minitaur")}
     | {f"dmc/{task}": (lambda task=task: _dmc(task)) for task in dmc_tasks.TASKS}
+    | {f"mjx-dmc/{task}": (lambda task=task: _mjx_dmc(task)) for task in dmc_tasks.PLAYGROUND_NAMES}
 )
 REGISTRY["ballbalance"] = lambda: importlib.import_module("rpo_jax.ballbalance").BallBalance()  # imports envs
 
@@ -523,9 +543,9 @@ def env_spec(name: str) -> EnvSpec:
         obs_size, action_size, backend = BRAX_SPECS[name.removeprefix("brax/")]
         high = (1.0,) * action_size
         return EnvSpec(name, obs_size, action_size, tuple(-h for h in high), high, 1000, f"brax-{backend}")
-    host_specs = _host_suite_specs()
-    if name in host_specs:
-        return host_specs[name]
+    suite_specs = _suite_specs()
+    if name in suite_specs:
+        return suite_specs[name]
     spec = getattr(REGISTRY[name], "spec", None)
     return spec if isinstance(spec, EnvSpec) else REGISTRY[name]().spec
 

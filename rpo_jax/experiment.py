@@ -24,20 +24,19 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from rpo_jax import envs, ppo, report, train
+from rpo_jax import dmc_tasks, envs, ppo, report, train
 from rpo_jax.cli import ArgumentParser, UsageError, write_json
 
-DMC_TASKS = (
-    "acrobot-swingup", "fish-swim", "hopper-hop", "humanoid-stand", "humanoid-run", "pendulum-swingup",
-    "quadruped-walk", "quadruped-run", "quadruped-escape", "walker-stand", "walker-walk", "walker-run",
-)  # fmt: skip
 SUITES: dict[str, tuple[str, ...]] = {
-    "dmc": tuple(f"dmc/{task}" for task in DMC_TASKS),
+    "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
+    # The paper's DMC tasks that MuJoCo Playground ports to MJX (all but the quadruped's).
+    "mjx-dmc": tuple(f"mjx-dmc/{task}" for task in dmc_tasks.PAPER_TASKS if task in dmc_tasks.PLAYGROUND_NAMES),
     "gym": ("gym/Pendulum-v1", "gym/BipedalWalker-v3"),
     "pybullet": ("pybullet/Ant", "pybullet/Minitaur"),
     "isaacgym": ("cartpole", "ballbalance"),
 }
-SUITES["all"] = tuple(name for suite in SUITES.values() for name in suite)
+# The paper's 18 tasks, each once (DMC on the host, as dm_control would step it).
+SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") for name in SUITES[suite])
 # The IsaacGym tasks were trained with rl_games' settings in the paper, everything else with CleanRL's.
 ISAACGYM_TASKS = SUITES["isaacgym"]
 

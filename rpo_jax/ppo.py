@@ -88,6 +88,8 @@ class Config:
     """clip of normalised rewards"""
     reward_scale: float = 1.0
     """constant factor applied to rewards before normalisation"""
+    normalize_value: bool = False
+    """the critic predicts returns standardised by their running mean and std (rl_games' value normalisation)"""
 
     @property
     def batch_size(self) -> int:
@@ -179,8 +181,9 @@ PRESETS: dict[str, Config] = {
     ),
     # rl_games' IsaacGym Cartpole config. Kept: sizes, ELU [32, 32], KL-adaptive lr, value
     # coefficient 4 (rl_games halves its squared error too), grad norm 1, reward scale 0.1,
-    # observation normalisation with the task's +-5 clip. Not reproduced: rl_games' value
-    # normalisation and its shared actor-critic trunk (rpo_jax keeps them separate).
+    # observation normalisation with the task's +-5 clip. rl_games' value normalisation is
+    # `normalize_value`, left off here so that the Cartpole results stay comparable; its shared
+    # actor-critic trunk is not reproduced (rpo_jax keeps them separate).
     "isaacgym": Config(
         total_timesteps=819_200, num_envs=512, num_steps=16, num_minibatches=1,
         update_epochs=8, lr=3e-4, lr_schedule="adaptive", kl_target=0.008, vf_coef=4.0,
@@ -333,6 +336,7 @@ class TrainState:
     key: jax.Array
     update: jax.Array  # [] updates done
     hparams: Hyperparams
+    value_stats: envs.RunningMeanStd  # [] statistics of the returns; unused without normalize_value
     last_episode_return: jax.Array  # [] carried forward through updates that finish no episode
     last_episode_length: jax.Array
 
@@ -435,8 +439,9 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
         zero = jnp.zeros(())
         opt_state = set_learning_rate(optimizer.init(params), hparams.lr)
         return TrainState(
-            params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams, zero, zero
-        )
+            params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
+            envs.RunningMeanStd.zeros(()), zero, zero,
+        )  # fmt: skip
 
     def rollout_step(params, carry, key):
         env_state, obs = carry
@@ -492,9 +497,16 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
         # Values in two large batched calls after the rollout rather than one per step.
         values = critic.apply(params["critic"], traj.obs)
         next_values = critic.apply(params["critic"], traj.final_obs)
+        value_stats = state.value_stats
+        if config.normalize_value:
+            values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
         advantages, returns = compute_gae(
             traj.reward, values, next_values, traj.terminated, traj.truncated, config.gamma, config.gae_lambda
         )
+        if config.normalize_value:
+            # The critic learns the new returns on the scale of statistics that include them.
+            value_stats = value_stats.update(returns.reshape(-1))
+            values, returns = value_stats.standardize(values), value_stats.standardize(returns)
         batch = jax.tree.map(
             lambda x: x.reshape(config.batch_size, *x.shape[2:]),
             Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
@@ -523,8 +535,9 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
             **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
         )
         new_state = TrainState(
-            params, opt_state, env_state, obs, key, update_count, state.hparams, episode_return, episode_length
-        )
+            params, opt_state, env_state, obs, key, update_count, state.hparams, value_stats,
+            episode_return, episode_length,
+        )  # fmt: skip
         return new_state, metrics
 
     return Trainer(config, init, update)

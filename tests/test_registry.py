@@ -14,13 +14,13 @@ def built_spec(name: str) -> envs.EnvSpec:
 
 
 @pytest.mark.parametrize(
-    "name", ["cartpole", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "dmc/walker-walk"]
+    "name", ["cartpole", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "dmc/walker-walk", "mjx-dmc/walker-walk"]
 )
 def test_static_spec_is_the_built_environments(name):
     assert envs.env_spec(name) == built_spec(name)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [name for name in envs.REGISTRY if name.startswith(("brax/", "pybullet/", "dmc/"))])
+@pytest.mark.parametrize("name", [name for name in envs.REGISTRY if name.startswith(("brax/", "pybullet/", "dmc/", "mjx-dmc/"))])
 def test_static_spec_is_the_built_environments_everywhere(name):
     assert envs.env_spec(name) == built_spec(name)

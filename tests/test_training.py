@@ -144,3 +144,15 @@ def test_isaacgym_preset_rpo_acceptance_run():
     returns = np.asarray(metrics.episode_return)
     final_return = returns[:, -max(1, config.num_updates // 10) :].mean(1)
     assert final_return.mean() >= 400, final_return
+
+
+def test_value_normalisation_keeps_statistics_of_the_returns(single_runs):
+    config = dataclasses.replace(TINY, normalize_value=True)
+    state, metrics = jax.jit(make_train(config, make_env("cartpole")))(jax.random.PRNGKey(0))
+    for name in METRIC_FIELDS:
+        assert np.isfinite(np.asarray(getattr(metrics, name))).all(), name
+    # Every update adds its num_envs * num_steps returns; Cartpole's returns are positive.
+    np.testing.assert_allclose(state.value_stats.count, 1e-4 + TINY.total_timesteps, rtol=1e-6)
+    assert float(state.value_stats.mean) > 0 and float(state.value_stats.var) > 0
+    # Without it the statistics are never touched.
+    assert float(single_runs[0][0].value_stats.count) == pytest.approx(1e-4)
