@@ -5,12 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
 
 class UsageError(Exception):
     """Bad input from the user: reported as one line with exit code 2."""
+
+
+def usage_failure(error: UsageError) -> int:
+    """Prints `error` as the one line the user sees and returns the exit code for bad input."""
+    print(f"error: {error}", file=sys.stderr)
+    return 2
 
 
 class ArgumentParser(argparse.ArgumentParser):

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rpo_jax import envs
-from rpo_jax.cli import ArgumentParser, UsageError
+from rpo_jax.cli import ArgumentParser, UsageError, usage_failure
 from rpo_jax.policy import PARAMS_FILE, load_policy
 
 
@@ -34,7 +34,7 @@ def episode_returns(
     env: envs.Env, policy: Callable[..., jax.Array], episodes: int, key: jax.Array, deterministic: bool
 ) -> np.ndarray:
     """The undiscounted return of the first episode of each of `episodes` parallel copies."""
-    vec = envs.EpisodeStatistics(envs.VectorEnv(env, episodes))
+    vec = envs.EpisodeStatistics(envs.vectorize(env, episodes))
 
     def run(key):
         reset_key, act_key = jax.random.split(key)
@@ -149,8 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)
             print(f"video: {args.video} ({length} steps, return {total:.2f})")
     except UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return usage_failure(error)
     return 0
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Sequence
 
 from rpo_jax import dmc_tasks, envs, ppo, report, train
-from rpo_jax.cli import ArgumentParser, UsageError, write_json
+from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_json
 
 SUITES: dict[str, tuple[str, ...]] = {
     "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
@@ -237,8 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         out = run(args)
     except UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return usage_failure(error)
     except train.Interrupted as interrupted:
         print(f"interrupted in {interrupted}; the same command continues the experiment", file=sys.stderr)
         return 130

@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from rpo_jax.cli import ArgumentParser, UsageError, write_text
+from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_text
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -283,8 +283,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError("--out is needed when overlaying several directories")
         path = build(args.out or args.dirs[0], args.dirs)
     except UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return usage_failure(error)
     print(f"report: {path}")
     return 0
 

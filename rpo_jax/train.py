@@ -33,7 +33,7 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import envs, ppo
-from rpo_jax.cli import ArgumentParser, UsageError, write_json
+from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_json
 from rpo_jax.checkpoint import CheckpointMismatch, Checkpointer
 from rpo_jax.policy import PARAMS_FILE
 from rpo_jax.report import tail_mean
@@ -465,8 +465,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
         summary = train(args)
     except UsageError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return usage_failure(error)
     except Interrupted as interrupted:
         print(f"interrupted; continue with: python -m rpo_jax.train --resume {interrupted}", file=sys.stderr)
         return 130

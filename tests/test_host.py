@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rpo_jax import envs, ppo, train
+from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.envs import MissingExtraError
 from rpo_jax.host import HostEnv, SequentialSimulators
 
@@ -148,3 +148,12 @@ def test_listing_names_every_env_with_its_sizes_without_building_them():
         ]
     assert rows["dmc/walker-walk"] == ["host", "24", "6", "1000"]
     assert rows["cartpole"] == ["mjx", "4", "1", "500"]
+
+
+def test_evaluation_runs_on_a_host_env():
+    def zero_policy(obs, key, deterministic):
+        return jnp.zeros((obs.shape[0], 1))
+
+    returns = evaluate.episode_returns(host_point_mass(), zero_policy, 3, jax.random.PRNGKey(0), True)
+    # Five steps each, reward -position^2 from a start in (-1, 1)^2.
+    assert returns.shape == (3,) and np.all(returns <= 0) and np.all(returns > -EPISODE * 2)
