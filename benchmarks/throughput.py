@@ -4,7 +4,7 @@
 
 env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random actions, timed
 after a warm-up call, from a state reset beforehand (for a host-side environment, the scan of
-its io_callback steps). raw_sps (host-side environments only): the same steps on the host
+its callback steps). raw_sps (host-side environments only): the same steps on the host
 simulators called directly from Python with numpy actions, no JAX involved. train_sps: the full
 PPO/RPO update (rollout, GAE, epochs of minibatch SGD) with --preset (default `isaacgym`) at
 --num-envs, timed after compilation. compile_seconds: the ahead-of-time compilation of that

@@ -37,8 +37,9 @@ SUITES: dict[str, tuple[str, ...]] = {
 }
 # The paper's 18 tasks, each once (DMC on the host, as dm_control would step it).
 SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") for name in SUITES[suite])
-# The IsaacGym tasks were trained with rl_games' settings in the paper, everything else with CleanRL's.
-ISAACGYM_TASKS = SUITES["isaacgym"]
+# The IsaacGym tasks were trained with rl_games' settings for each task in the paper, everything
+# else with CleanRL's (the `paper` preset).
+TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
 
 ENTROPY_COEFS = (0.0, 0.01, 0.05, 0.5, 1.0, 10.0)
 RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
@@ -110,7 +111,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--num-envs", type=int, help="parallel environments per run (default: the preset's)")
     parser.add_argument(
         "--preset", choices=sorted(ppo.PRESETS),
-        help="config for every environment (default: isaacgym for the IsaacGym tasks, paper for the rest)",
+        help="config for every environment (default: rl_games' for the IsaacGym tasks, paper for the rest)",
     )  # fmt: skip
     parser.add_argument("--checkpoint-every", type=int, metavar="STEPS", help="as for rpo_jax.train")
     parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
@@ -168,7 +169,7 @@ def prepare_out(out: Path, definition: dict) -> None:
 
 
 def train_argv(definition: dict, env: str, job: Job, directory: Path) -> list[str]:
-    preset = definition["preset"] or ("isaacgym" if env in ISAACGYM_TASKS else "paper")
+    preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
     argv = ["--env", env, "--preset", preset, *job.train_args(), "--seed", "1"]
     argv += ["--num-seeds", str(definition["seeds"]), "--total-timesteps", str(definition["timesteps"])]
     if definition["num_envs"]:

@@ -191,6 +191,13 @@ PRESETS: dict[str, Config] = {
         reward_scale=0.1, obs_clip=5.0,
     ),
 }  # fmt: skip
+# rl_games' IsaacGym BallBalance config: Cartpole's with an MLP [128, 64, 32], 4096 environments
+# in minibatches of 8192 and value normalisation (without it BallBalance plateaus near 245, see
+# benchmarks/RESULTS.md), for its 250 updates (16M steps).
+PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
+    PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
+    hidden_sizes=(128, 64, 32), normalize_value=True,
+)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -412,11 +419,14 @@ class Trainer:
     """`init(key)` builds the state; `run(state, n)` does n updates in one `lax.scan`.
 
     Both are pure and jittable. A long run calls one compiled `run` chunk repeatedly (all
-    chunks the same length, so it compiles once) to report progress between chunks."""
+    chunks the same length, so it compiles once) to report progress between chunks.
+    `restart_episodes(state)` replaces the episodes in flight by fresh ones and keeps the rest
+    (see there)."""
 
     config: Config
     init: Callable[..., TrainState]
     update: Callable[[TrainState], tuple[TrainState, Metrics]]
+    restart_episodes: Callable[[TrainState], TrainState]
 
     def run(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
         return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
@@ -540,7 +550,19 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
         )  # fmt: skip
         return new_state, metrics
 
-    return Trainer(config, init, update)
+    def restart_episodes(state: TrainState) -> TrainState:
+        """`state` with a fresh episode in every environment; parameters, optimiser, counters
+        and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
+        whose state lives outside JAX and so in no checkpoint. Relies on the wrapper order of
+        `wrap_for_training`: the observation normaliser outermost, the reward normaliser next."""
+        key, reset_key = jax.random.split(state.key)
+        saved = state.env_state
+        inner, ts = train_env.env.reset(reset_key)
+        inner = inner.replace(return_stats=saved.inner.return_stats)
+        obs = envs.normalize_observation(ts.obs, saved.obs_stats, config.obs_clip) if config.normalize_obs else ts.obs
+        return state.replace(env_state=saved.replace(inner=inner), obs=obs, key=key)
+
+    return Trainer(config, init, update, restart_episodes)
 
 
 def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:

@@ -7,7 +7,8 @@
 
 Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
 parameters (see `rpo_jax.load_policy`) to --out, and checkpoints (see `rpo_jax.checkpoint`)
-from which `--resume` continues an interrupted run exactly.
+from which `--resume` continues an interrupted run: exactly, except that host-side simulators,
+which no checkpoint holds, start fresh episodes.
 """
 
 from __future__ import annotations
@@ -350,6 +351,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             state, record = checkpointer.restore(abstract_state)
         except CheckpointMismatch as error:
             raise UsageError(f"--resume {out}: {error}") from None
+        if env.spec.backend == "host":
+            # The simulators died with the interrupted process and no checkpoint holds them.
+            state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
     else:
         state = jax.jit(jax.vmap(trainer.init))(keys, hparams)
     run_chunk = jax.jit(jax.vmap(lambda s: trainer.run(s, chunk))).lower(abstract_state).compile()

@@ -80,6 +80,11 @@ def test_every_experiment_builds_valid_training_commands(tmp_path):
             defaults = {name: float(getattr(plan.config, name)) for name in ("rpo_alpha", "ent_coef", "lr", "drac_coef")}
             variants += [job.variant({**defaults, **point}) for point in grid]
         assert len(set(variants)) == expected_variants[name], (name, variants)
+    # BallBalance trains with rl_games' BallBalance config, not Cartpole's.
+    definition = experiment.resolve(experiment.build_parser().parse_args(["long-horizon", "--envs", "ballbalance"]))
+    plan = train.plan_new_run(parser.parse_args(experiment.train_argv(definition, "ballbalance", experiment.RPO, tmp_path / "bb")))
+    assert plan.config.hidden_sizes == (128, 64, 32) and plan.config.num_envs == 4096 and plan.config.normalize_value
+    assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
 
 
 def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path):

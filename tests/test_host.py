@@ -4,6 +4,7 @@ simulator here is a few lines of numpy."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -11,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import serialization
 
 from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.envs import MissingExtraError
@@ -114,6 +116,29 @@ def test_trains_on_a_host_env():
     for name, value in vars(metrics).items():
         assert value.shape == (2,) and np.isfinite(np.asarray(value)).all(), name
     np.testing.assert_allclose(metrics.episode_length, EPISODE)
+
+
+def test_resumed_host_run_restarts_its_episodes_and_keeps_its_statistics(monkeypatch, tmp_path):
+    # The resumed run builds new simulators, as a new process would: the old pools are unknown.
+    monkeypatch.setitem(envs.REGISTRY, "host_point_mass", host_point_mass)
+    out = tmp_path / "run"
+    size = ["--num-envs", "2", "--num-steps", "8", "--num-minibatches", "1", "--update-epochs", "1"]
+    args = ["--env", "host_point_mass", *size, "--total-timesteps", "96", "--checkpoint-every", "32"]
+    assert train.main([*args, "--log-every", "1", "--quiet", "--out", str(out)]) == 0
+    uninterrupted = (out / "metrics.jsonl").read_text().splitlines()
+    obs_count = serialization.msgpack_restore((out / "params.msgpack").read_bytes())["obs_stats"]["count"]
+    (out / "summary.json").unlink()  # as if killed after the checkpoint at update 4
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [row["update"] for row in rows] == [1, 2, 3, 4, 5, 6]
+    assert (out / "metrics.jsonl").read_text().splitlines()[:4] == uninterrupted[:4]
+    # 32 steps in, each environment was 2 steps into an episode; a restarted episode runs its
+    # whole 5 steps, where one continued across the resume would be logged longer.
+    assert all(row["episode_length"] == EPISODE for row in rows)
+    assert all(np.isfinite(row["value_loss"]) for row in rows)
+    # The observation statistics went on from the checkpoint's rather than starting again.
+    resumed = serialization.msgpack_restore((out / "params.msgpack").read_bytes())["obs_stats"]["count"]
+    np.testing.assert_allclose(resumed, obs_count)
 
 
 def test_missing_extra_is_a_one_line_value_error(monkeypatch):

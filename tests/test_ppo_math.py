@@ -348,6 +348,6 @@ def test_boundary_configs_are_valid(overrides):
     assert config.validate() is config
 
 
-@pytest.mark.parametrize("name", ["paper", "isaacgym"])
+@pytest.mark.parametrize("name", sorted(PRESETS))
 def test_presets_validate(name):
     assert PRESETS[name].validate() is PRESETS[name]
