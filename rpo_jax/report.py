@@ -78,6 +78,15 @@ def tail_mean(values: Sequence[float]) -> float:
     return float(np.mean(values[-tail:]))
 
 
+def kept_fraction(values: Sequence[float]) -> float:
+    """The last window of 10% of the logged updates (at least one) as a fraction of the best
+    such window: 1 for a curve that never fell back, NaN where the best window is not positive."""
+    window = max(1, math.ceil(len(values) / 10))
+    windows = np.convolve(values, np.ones(window) / window, mode="valid")
+    best = windows.max()
+    return float(windows[-1] / best) if best > 0 else math.nan
+
+
 def unique(values: Iterable[str]) -> list[str]:
     return list(dict.fromkeys(values))
 
@@ -99,6 +108,8 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict[str, float]]:
     for key, seeds in group_runs(rows).items():
         returns = [tail_mean([row["episode_return"] for row in run]) for run in seeds.values()]
         entropies = [tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()]
+        length = min(len(run) for run in seeds.values())
+        mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
         summary[key] = {
             "return_mean": float(np.mean(returns)),
             "return_std": float(np.std(returns)),
@@ -106,6 +117,11 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict[str, float]]:
             "entropy_std": float(np.std(entropies)),
             "seeds": len(seeds),
             "env_steps": max(run[-1]["env_steps"] for run in seeds.values()),
+            "kept": kept_fraction(mean_curve),
+            "kept_worst_seed": min(
+                (kept_fraction([row["episode_return"] for row in run]) for run in seeds.values()),
+                key=lambda kept: math.inf if math.isnan(kept) else kept,
+            ),
         }
     return summary
 
@@ -233,6 +249,12 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     best_entropy = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["entropy_mean"]) for env in envs}
     returns = {key: f"{s['return_mean']:.2f} ± {s['return_std']:.2f}" for key, s in summary.items()}
     entropies = {key: f"{s['entropy_mean']:.2f} ± {s['entropy_std']:.2f}" for key, s in summary.items()}
+    kept = {
+        key: f"{s['kept']:.3f} ({s['kept_worst_seed']:.3f})" for key, s in summary.items() if not math.isnan(s["kept"])
+    }
+    best_kept = {
+        env: max((v for e, v in kept if e == env), key=lambda v: summary[env, v]["kept"], default=None) for env in envs
+    }
     experiments = unique(row["experiment"] for row in rows)
     seeds = sorted({s["seeds"] for s in summary.values()})
     steps = sorted({s["env_steps"] for s in summary.values()})
@@ -255,6 +277,14 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         "Entropy of the policy summed over action dimensions, averaged the same way; the highest in bold.",
         "",
         *_table(envs, variants, entropies, best_entropy),
+        "",
+        "## Late training",
+        "",
+        "The return curve, averaged over windows of 10% of the logged updates: its last window as a "
+        "fraction of its best one, for the mean over seeds and (in brackets) the worst seed. 1.000 "
+        "means the return never fell back from its best; blank where the best window is not positive.",
+        "",
+        *_table(envs, variants, kept, best_kept),
         "",
         "## Normalised score",
         "",

@@ -52,6 +52,7 @@ def test_experiment_writes_results_report_and_figures(uninterrupted):
 
     text = (uninterrupted / "report.md").read_text()
     assert "| env | ppo | rpo |" in text and "| cartpole |" in text and "**" in text
+    assert "## Late training" in text
     summary = report.summarise(report.read_results(uninterrupted))
     for job in JOBS:
         finals = json.loads((job_dir(uninterrupted, job) / "summary.json").read_text())["final_return_mean"]
@@ -60,6 +61,13 @@ def test_experiment_writes_results_report_and_figures(uninterrupted):
         figure = uninterrupted / report.FIGURES_DIR / name
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 10_000
         assert f"]({report.FIGURES_DIR}/{name})" in text
+
+
+def test_kept_fraction_is_the_last_window_over_the_best():
+    # 20 values: windows of 2. The best window is 10, the last 5.
+    assert report.kept_fraction([0, 0] + [10] * 8 + [8] * 8 + [5, 5]) == pytest.approx(0.5)
+    assert report.kept_fraction(list(range(1, 21))) == 1.0  # still rising
+    assert np.isnan(report.kept_fraction([-200.0] * 20))  # no positive window: no ratio
 
 
 def test_every_experiment_builds_valid_training_commands(tmp_path):
