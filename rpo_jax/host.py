@@ -9,10 +9,11 @@ depends on the previous step's observation). Under `jax.vmap` over runs (train.p
 sweep points) the callbacks run once per run, in turn, each with that run's handle, so every
 run steps its own pool and the same key always gives the same episodes.
 
-The callbacks are `jax.experimental.buffer_callback`s, which hand the host function XLA's own
-buffers: the inputs are read and the outputs written in place. `io_callback` would copy every
-argument into a new JAX array before the call; on a 2-core CPU that costs about 200 us per
-step, nearly as much as a DeepMind Control walker step, against about 10 us here.
+When JAX computes on the CPU the callbacks are `jax.experimental.buffer_callback`s, which hand
+the host function XLA's own buffers: the inputs are read and the outputs written in place.
+`io_callback`, used on other devices because it copies the arrays to the host, also copies
+every argument into a new JAX array before the call; on a 2-core CPU that costs about 200 us
+per step, nearly as much as a DeepMind Control walker step, against about 10 us in place.
 
 No checkpoint holds the simulators, so a resumed run starts fresh episodes in new pools
 (`ppo.Trainer.restart_episodes`).
@@ -31,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.experimental import io_callback
 from jax.experimental.buffer_callback import buffer_callback
 
 from rpo_jax.envs import EnvSpec, TimeStep, _first_step
@@ -73,44 +75,62 @@ class HostEnv:
 
 
 class BatchedHostEnv:
-    """`num_envs` host simulators behind the batched protocol; see the module's docstring."""
+    """`num_envs` host simulators behind the batched protocol; see the module's docstring.
+
+    `in_place` (default: whether JAX computes on the CPU) chooses buffer callbacks, which need
+    XLA's buffers in host memory, over `io_callback`, which copies them there from any device."""
 
     def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int) -> None:
         self.spec, self.make_simulators, self.num_envs = spec, make_simulators, num_envs
         self.pools: dict[int, HostSimulators] = {}
         self.handles = itertools.count()
+        self.in_place = jax.default_backend() == "cpu"
         n, obs_size = num_envs, spec.observation_size
         obs = jax.ShapeDtypeStruct((n, obs_size), jnp.float32)
         flag = jax.ShapeDtypeStruct((n,), jnp.bool_)
-        reset_shapes = (jax.ShapeDtypeStruct((), jnp.int32), obs)
-        step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
-        # Side effects keep XLA from dropping or merging calls; "sequential" makes vmap call
-        # them once per run.
-        self._reset = buffer_callback(self._host_reset, reset_shapes, has_side_effect=True, vmap_method="sequential")
-        self._step = buffer_callback(self._host_step, step_shapes, has_side_effect=True, vmap_method="sequential")
+        self.reset_shapes = (jax.ShapeDtypeStruct((), jnp.int32), obs)
+        self.step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
 
-    def _host_reset(self, ctx: object, out: tuple, seed: object) -> None:
+    def _host_reset(self, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         handle = next(self.handles)
-        pool = self.make_simulators(self.num_envs, int(np.asarray(seed)))
+        pool = self.make_simulators(self.num_envs, int(seed))
         self.pools[handle] = pool
-        np.asarray(out[0])[...] = handle
-        np.asarray(out[1])[...] = pool.reset()
+        return np.asarray(handle, np.int32), pool.reset()
 
-    def _host_step(self, ctx: object, out: tuple, handle: object, action: object) -> None:
-        # A copy: XLA may reuse the action's buffer once the callback returns.
-        results = self.pools[int(np.asarray(handle))].step(np.asarray(action).copy())
-        for buffer, result in zip(out, results):
-            np.asarray(buffer)[...] = result
+    def _host_step(self, handle: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        return self.pools[int(handle)].step(action)
+
+    def _call(self, host_fn: Callable[..., tuple], shapes: tuple, *args: jax.Array) -> tuple[jax.Array, ...]:
+        """`host_fn` (numpy arrays in, a tuple of them out) called from the compiled program."""
+        if not self.in_place:
+
+            def copying(*arrays: jax.Array) -> tuple[np.ndarray, ...]:
+                results = host_fn(*(np.asarray(array) for array in arrays))
+                return tuple(np.asarray(result, shape.dtype) for result, shape in zip(results, shapes))
+
+            return io_callback(copying, shapes, *args)
+
+        def in_place(ctx: object, out: tuple, *buffers: object) -> None:
+            # Copies of the inputs: XLA may reuse their buffers once the callback returns.
+            results = host_fn(*(np.asarray(buffer).copy() for buffer in buffers))
+            for buffer, result in zip(out, results):
+                np.asarray(buffer)[...] = result
+
+        # The side effect keeps XLA from dropping or merging calls; "sequential" makes vmap call
+        # the function once per run.
+        return buffer_callback(in_place, shapes, has_side_effect=True, vmap_method="sequential")(*args)
 
     def reset(self, key: jax.Array) -> tuple[HostState, TimeStep]:
         # Drawn in JAX so that raw and typed keys both work; below 2^30 so that a simulator that
         # seeds environment i with seed + i (envpool) stays within int32.
         seed = jax.random.randint(key, (), 0, 2**30, dtype=jnp.int32)
-        handle, obs = self._reset(seed)
+        handle, obs = self._call(self._host_reset, self.reset_shapes, seed)
         return HostState(handle), _first_step(obs)
 
     def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
-        obs, reward, terminated, truncated, final_obs = self._step(state.handle, action.astype(jnp.float32))
+        obs, reward, terminated, truncated, final_obs = self._call(
+            self._host_step, self.step_shapes, state.handle, action.astype(jnp.float32)
+        )
         return state, TimeStep(obs, reward, terminated, truncated, final_obs)
 
 

@@ -79,6 +79,16 @@ def test_host_env_auto_resets_and_truncates_inside_a_jitted_scan():
     np.testing.assert_allclose(traj.reward, -(np.asarray(traj.final_obs)[..., 0] ** 2), rtol=1e-6)
 
 
+def test_copying_callbacks_for_other_devices_give_the_same_episodes():
+    # On a GPU the callbacks copy through io_callback instead of working in place.
+    in_place, copying = envs.vectorize(host_point_mass(), 3), envs.vectorize(host_point_mass(), 3)
+    copying.in_place = False
+    actions = jax.random.uniform(jax.random.PRNGKey(3), (2 * EPISODE, 3, 1), minval=-1, maxval=1)
+    expected = jax.tree.leaves(rollout(in_place, jax.random.PRNGKey(1), actions))
+    for x, y in zip(expected, jax.tree.leaves(rollout(copying, jax.random.PRNGKey(1), actions))):
+        np.testing.assert_array_equal(x, y)
+
+
 def test_same_key_same_episodes_other_key_other_episodes():
     env = envs.vectorize(host_point_mass(), 3)
     actions = jnp.zeros((7, 3, 1))
