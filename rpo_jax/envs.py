@@ -466,8 +466,9 @@ class NormalizeReward:
 # --------------------------------------------------------------------------------------------
 # Registry
 
+# Brax's physics tasks; not its `fast`, a stand-in with no physics system for Brax's own tests.
 BRAX_ENVS = (
-    "ant", "fast", "halfcheetah", "hopper", "humanoid", "humanoidstandup",
+    "ant", "halfcheetah", "hopper", "humanoid", "humanoidstandup",
     "inverted_double_pendulum", "inverted_pendulum", "pusher", "reacher", "swimmer", "walker2d",
 )  # fmt: skip
 
