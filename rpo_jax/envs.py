@@ -397,6 +397,13 @@ def normalize_observation(obs: jax.Array, stats: RunningMeanStd, clip: float) ->
     return jnp.clip(stats.standardize(obs), -clip, clip)
 
 
+def restart(env: Env, state: Any, key: jax.Array) -> tuple[Any, TimeStep]:
+    """Fresh episodes in every environment that keep the running statistics in `state`, for a
+    resumed run whose simulators were not in its checkpoint: the normalisers' `restart`, a plain
+    reset for environments that keep no statistics."""
+    return env.restart(state, key) if hasattr(env, "restart") else env.reset(key)
+
+
 @struct.dataclass
 class NormalizeObservationState:
     inner: Any
@@ -418,14 +425,20 @@ class NormalizeObservation:
         stats = RunningMeanStd.zeros((self.spec.observation_size,))
         return self._output(state, stats, ts)
 
+    def restart(self, state: NormalizeObservationState, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
+        # The statistics are the checkpoint's, not updated, so that they go on as if never stopped.
+        inner, ts = restart(self.env, state.inner, key)
+        return self._output(inner, state.obs_stats, ts, update=False)
+
     def step(self, state: NormalizeObservationState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)
         return self._output(inner, state.obs_stats, ts)
 
-    def _output(self, inner: Any, stats: RunningMeanStd, ts: TimeStep):
+    def _output(self, inner: Any, stats: RunningMeanStd, ts: TimeStep, update: bool = True):
         if not self.enabled:
             return NormalizeObservationState(inner, stats), ts
-        stats = stats.update(ts.obs)
+        if update:
+            stats = stats.update(ts.obs)
         return NormalizeObservationState(inner, stats), ts.replace(
             obs=normalize_observation(ts.obs, stats, self.clip),
             final_obs=normalize_observation(ts.final_obs, stats, self.clip),
@@ -451,6 +464,10 @@ class NormalizeReward:
     def reset(self, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
         state, ts = self.env.reset(key)
         return NormalizeRewardState(state, jnp.zeros(ts.reward.shape), RunningMeanStd.zeros(())), ts
+
+    def restart(self, state: NormalizeRewardState, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
+        inner, ts = restart(self.env, state.inner, key)
+        return NormalizeRewardState(inner, jnp.zeros(ts.reward.shape), state.return_stats), ts
 
     def step(self, state: NormalizeRewardState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)

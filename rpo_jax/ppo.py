@@ -553,14 +553,10 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
     def restart_episodes(state: TrainState) -> TrainState:
         """`state` with a fresh episode in every environment; parameters, optimiser, counters
         and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
-        whose state lives outside JAX and so in no checkpoint. Relies on the wrapper order of
-        `wrap_for_training`: the observation normaliser outermost, the reward normaliser next."""
+        whose state lives outside JAX and so in no checkpoint."""
         key, reset_key = jax.random.split(state.key)
-        saved = state.env_state
-        inner, ts = train_env.env.reset(reset_key)
-        inner = inner.replace(return_stats=saved.inner.return_stats)
-        obs = envs.normalize_observation(ts.obs, saved.obs_stats, config.obs_clip) if config.normalize_obs else ts.obs
-        return state.replace(env_state=saved.replace(inner=inner), obs=obs, key=key)
+        env_state, ts = envs.restart(train_env, state.env_state, reset_key)
+        return state.replace(env_state=env_state, obs=ts.obs, key=key)
 
     return Trainer(config, init, update, restart_episodes)
 
