@@ -73,6 +73,10 @@ class TimeStep:
 
 
 class Env(Protocol):
+    """What the trainer drives. A wrapper that keeps statistics across episodes (the normalisers)
+    also defines `restart(state, key)`: fresh episodes that keep those statistics, which
+    `envs.restart` calls when a resumed host run starts its simulators again."""
+
     spec: EnvSpec
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]: ...

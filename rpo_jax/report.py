@@ -136,6 +136,10 @@ def normalised_scores(summary: dict[tuple[str, str], dict[str, float]]) -> dict[
     return scores
 
 
+def _mean_std(mean: float, std: float, seeds: int) -> str:
+    return f"{mean:.2f} ± {std:.2f}" if seeds > 1 else f"{mean:.2f}"
+
+
 def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
     lines = ["| env | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
     for env in envs:
@@ -247,10 +251,12 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
 
     best_return = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["return_mean"]) for env in envs}
     best_entropy = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["entropy_mean"]) for env in envs}
-    returns = {key: f"{s['return_mean']:.2f} ± {s['return_std']:.2f}" for key, s in summary.items()}
-    entropies = {key: f"{s['entropy_mean']:.2f} ± {s['entropy_std']:.2f}" for key, s in summary.items()}
+    returns = {key: _mean_std(s["return_mean"], s["return_std"], s["seeds"]) for key, s in summary.items()}
+    entropies = {key: _mean_std(s["entropy_mean"], s["entropy_std"], s["seeds"]) for key, s in summary.items()}
     kept = {
-        key: f"{s['kept']:.3f} ({s['kept_worst_seed']:.3f})" for key, s in summary.items() if not math.isnan(s["kept"])
+        key: f"{s['kept']:.3f}" + (f" ({s['kept_worst_seed']:.3f})" if s["seeds"] > 1 else "")
+        for key, s in summary.items()
+        if not math.isnan(s["kept"])
     }
     best_kept = {
         env: max((v for e, v in kept if e == env), key=lambda v: summary[env, v]["kept"], default=None) for env in envs
@@ -267,8 +273,8 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         "",
         "## Final return",
         "",
-        "Mean ± std over seeds of the episode return averaged over the last 10% of logged updates; "
-        "the best variant of each environment in bold.",
+        "Mean ± std over seeds of the episode return averaged over the last 10% of logged updates "
+        "(the value alone where a variant has one seed); the best variant of each environment in bold.",
         "",
         *_table(envs, variants, returns, best_return),
         "",
@@ -281,8 +287,9 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         "## Late training",
         "",
         "The return curve, averaged over windows of 10% of the logged updates: its last window as a "
-        "fraction of its best one, for the mean over seeds and (in brackets) the worst seed. 1.000 "
-        "means the return never fell back from its best; blank where the best window is not positive.",
+        "fraction of its best one, for the mean over seeds and (in brackets, with several seeds) the "
+        "worst seed. 1.000 means the return never fell back from its best; blank where the best "
+        "window is not positive.",
         "",
         *_table(envs, variants, kept, best_kept),
         "",
