@@ -136,8 +136,9 @@ def normalised_scores(summary: dict[tuple[str, str], dict[str, float]]) -> dict[
     return scores
 
 
-def _mean_std(mean: float, std: float, seeds: int) -> str:
-    return f"{mean:.2f} ± {std:.2f}" if seeds > 1 else f"{mean:.2f}"
+def _with_spread(value: str, spread: str, seeds: int) -> str:
+    # One seed has no spread to show: a "± 0.00" would read as a measured one.
+    return value + spread if seeds > 1 else value
 
 
 def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
@@ -251,10 +252,15 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
 
     best_return = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["return_mean"]) for env in envs}
     best_entropy = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["entropy_mean"]) for env in envs}
-    returns = {key: _mean_std(s["return_mean"], s["return_std"], s["seeds"]) for key, s in summary.items()}
-    entropies = {key: _mean_std(s["entropy_mean"], s["entropy_std"], s["seeds"]) for key, s in summary.items()}
+    returns = {
+        key: _with_spread(f"{s['return_mean']:.2f}", f" ± {s['return_std']:.2f}", s["seeds"]) for key, s in summary.items()
+    }
+    entropies = {
+        key: _with_spread(f"{s['entropy_mean']:.2f}", f" ± {s['entropy_std']:.2f}", s["seeds"])
+        for key, s in summary.items()
+    }
     kept = {
-        key: f"{s['kept']:.3f}" + (f" ({s['kept_worst_seed']:.3f})" if s["seeds"] > 1 else "")
+        key: _with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
         for key, s in summary.items()
         if not math.isnan(s["kept"])
     }
