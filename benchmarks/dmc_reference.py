@@ -77,7 +77,7 @@ def layouts() -> dict:
 
 
 def envpool_starts() -> dict:
-    from rpo_jax.dmc_suite import DmcSimulators
+    from rpo_jax.envs.dmc import DmcSimulators
 
     return {
         task: DmcSimulators(task, SAME_START_EPISODES, SAME_START_SEED).reset().tolist() for task in SAME_START_TASKS

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rpo_jax import envs, ppo
-from rpo_jax.host import HostEnv
+from rpo_jax.envs.host import HostEnv
 
 
 def best_of(fn, repeats: int) -> float:

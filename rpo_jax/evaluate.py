@@ -71,7 +71,7 @@ def record_video(
         import imageio.v2 as imageio
     except ImportError:
         raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
-    if not all(hasattr(env, name) for name in ("mj_model", "qpos", "control_dt")):
+    if not isinstance(env, envs.Renderable):
         raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
 
     episode_env = envs.TimeLimit(env)

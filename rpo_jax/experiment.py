@@ -24,7 +24,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from rpo_jax import dmc_tasks, envs, ppo, report, train
+from rpo_jax import envs, ppo, report, train
+from rpo_jax.envs import dmc_tasks
 from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_json
 
 SUITES: dict[str, tuple[str, ...]] = {
@@ -123,7 +124,7 @@ def resolve(args: argparse.Namespace) -> dict:
     """The experiment's full definition, as recorded in experiment.json."""
     experiment = EXPERIMENTS[args.name]
     env_names = list(args.envs or SUITES[args.suite or experiment.default_suite])
-    unknown = [name for name in env_names if name not in envs.REGISTRY]
+    unknown = [name for name in env_names if name not in envs.env_names()]
     if unknown:
         raise UsageError(
             f"unknown environment(s) {', '.join(unknown)}; python -m rpo_jax.envs lists the valid names"

@@ -379,10 +379,10 @@ class Transition:
 
 
 def wrap_for_training(env: envs.Env, config: Config) -> envs.Env:
-    """The batched environment the trainer steps: `env` itself if it is already batched (it
-    has `num_envs`), else `config.num_envs` vmapped copies. The observation normaliser is
+    """The batched environment the trainer steps: `env` itself if it is already batched (an
+    `envs.BatchedEnv`), else `config.num_envs` vmapped copies. The observation normaliser is
     outermost so that its statistics sit at `env_state.obs_stats`, where saved policies read them."""
-    if not hasattr(env, "num_envs"):
+    if not isinstance(env, envs.BatchedEnv):
         env = envs.vectorize(env, config.num_envs)
     elif env.num_envs != config.num_envs:
         raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {config.num_envs}")
@@ -555,7 +555,7 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
         and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
         whose state lives outside JAX and so in no checkpoint."""
         key, reset_key = jax.random.split(state.key)
-        env_state, ts = envs.restart(train_env, state.env_state, reset_key)
+        env_state, ts = train_env.restart(state.env_state, reset_key)
         return state.replace(env_state=env_state, obs=ts.obs, key=key)
 
     return Trainer(config, init, update, restart_episodes)

@@ -351,7 +351,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             state, record = checkpointer.restore(abstract_state)
         except CheckpointMismatch as error:
             raise UsageError(f"--resume {out}: {error}") from None
-        if env.spec.backend == "host":
+        if env.spec.runs_on_host:
             # The simulators died with the interrupted process and no checkpoint holds them.
             state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
     else:

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from rpo_jax import ballbalance as bb
+from rpo_jax.envs import ballbalance as bb
 from rpo_jax.envs import VectorEnv, make_env
 from rpo_jax.ppo import PRESETS, make_train
 

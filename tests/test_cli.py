@@ -100,7 +100,7 @@ def test_existing_output_directory_is_refused_and_kept(run_dir):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--env", "nope"], "valid names: cartpole"),
+        (["--env", "nope"], "unknown env 'nope'"),
         (["--algo", "sac"], "invalid choice"),
         (["--num-minibatches", "7"], "num_minibatches"),
         (["--rpo-alpha", "-1"], "rpo_alpha"),

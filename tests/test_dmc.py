@@ -13,7 +13,8 @@ import jax
 import numpy as np
 import pytest
 
-from rpo_jax import dmc_tasks, envs
+from rpo_jax import envs
+from rpo_jax.envs import dmc_tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "dmc_reference.json").read_text())
@@ -39,7 +40,7 @@ def test_task_table_is_dm_controls():
 
 
 def fixed_action_returns(task: str, episodes: int = 8, seed: int = 12345, first_obs: list | None = None) -> np.ndarray:
-    from rpo_jax.dmc_suite import SPECS, DmcSimulators
+    from rpo_jax.envs.dmc import SPECS, DmcSimulators
 
     spec = SPECS[f"dmc/{task}"]
     simulators = DmcSimulators(task, episodes, seed)

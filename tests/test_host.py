@@ -1,4 +1,4 @@
-"""Host-side environments behind the batched protocol (rpo_jax.host), the registry's listing
+"""Host-side environments behind the batched protocol (rpo_jax.envs.host), the registry's listing
 and its errors for missing optional dependencies. Needs no optional dependency: the host
 simulator here is a few lines of numpy."""
 
@@ -16,7 +16,7 @@ from flax import serialization
 
 from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.envs import MissingExtraError
-from rpo_jax.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.host import HostEnv, SequentialSimulators
 
 EPISODE = 5
 SPEC = envs.EnvSpec("host_point_mass", 2, 1, (-1.0,), (1.0,), EPISODE, "host")
@@ -79,6 +79,29 @@ def test_host_env_auto_resets_and_truncates_inside_a_jitted_scan():
     np.testing.assert_allclose(traj.reward, -(np.asarray(traj.final_obs)[..., 0] ** 2), rtol=1e-6)
 
 
+def test_close_closes_and_drops_every_pool():
+    closed = []
+
+    class ClosingSim(PointMassSim):
+        def close(self) -> None:
+            closed.append(self)
+
+    env = HostEnv(
+        SPEC,
+        lambda num_envs, seed: SequentialSimulators(
+            num_envs, seed, ClosingSim, lambda sim: sim.reset(), lambda sim, action: sim.step(action), ClosingSim.close
+        ),
+    ).vectorize(3)
+    assert isinstance(env, envs.BatchedEnv) and isinstance(host_point_mass(), envs.Vectorizable)
+    rollout(env, jax.random.PRNGKey(0), jnp.zeros((2, 3, 1)))
+    rollout(env, jax.random.PRNGKey(1), jnp.zeros((2, 3, 1)))
+    assert len(env.pools) == 2
+    env.close()
+    assert env.pools == {} and len(closed) == 6
+    env.close()  # nothing left to close
+    assert len(closed) == 6
+
+
 def test_copying_callbacks_for_other_devices_give_the_same_episodes():
     # On a GPU the callbacks copy through io_callback instead of working in place.
     in_place, copying = envs.vectorize(host_point_mass(), 3), envs.vectorize(host_point_mass(), 3)
@@ -128,9 +151,9 @@ def test_trains_on_a_host_env():
     np.testing.assert_allclose(metrics.episode_length, EPISODE)
 
 
-def test_resumed_host_run_restarts_its_episodes_and_keeps_its_statistics(monkeypatch, tmp_path):
+def test_resumed_host_run_restarts_its_episodes_and_keeps_its_statistics(isolated_registry, tmp_path):
     # The resumed run builds new simulators, as a new process would: the old pools are unknown.
-    monkeypatch.setitem(envs.REGISTRY, "host_point_mass", host_point_mass)
+    envs.register_env("host_point_mass", host_point_mass, SPEC)
     out = tmp_path / "run"
     size = ["--num-envs", "2", "--num-steps", "8", "--num-minibatches", "1", "--update-epochs", "1"]
     args = ["--env", "host_point_mass", *size, "--total-timesteps", "96", "--checkpoint-every", "32"]
@@ -172,7 +195,7 @@ def test_listing_names_every_env_with_its_sizes_without_building_them():
     )
     assert result.stderr == ""
     rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[1:]}
-    assert list(rows) == list(envs.REGISTRY)
+    assert tuple(rows) == envs.env_names()
     for name in ("gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "pybullet/Minitaur", "dmc/walker-walk"):
         spec = envs.env_spec(name)
         assert rows[name] == [

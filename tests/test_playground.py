@@ -4,7 +4,8 @@ import jax
 import numpy as np
 import pytest
 
-from rpo_jax import dmc_tasks, envs, ppo
+from rpo_jax import envs, ppo
+from rpo_jax.envs import dmc_tasks
 
 pytest.importorskip("mujoco_playground")
 

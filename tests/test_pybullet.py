@@ -11,7 +11,7 @@ from rpo_jax import envs, ppo
 pytest.importorskip("pybullet")
 pytest.importorskip("gym")
 
-from rpo_jax.pybullet_suite import GYM_IDS, _import_pybullet_envs  # noqa: E402
+from rpo_jax.envs.pybullet import GYM_IDS, _import_pybullet_envs  # noqa: E402
 
 
 @pytest.mark.parametrize("name", sorted(GYM_IDS))

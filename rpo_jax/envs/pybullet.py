@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from rpo_jax.envs import EnvSpec, MissingExtraError
-from rpo_jax.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 
 GYM_IDS = {"Ant": "AntBulletEnv-v0", "Minitaur": "MinitaurBulletEnv-v0"}
 SPECS = {
@@ -51,6 +51,10 @@ def _step(env: Any, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
     return np.asarray(obs), reward, done and not truncated, truncated
 
 
+def _close(env: Any) -> None:
+    env.close()
+
+
 def make(name: str) -> HostEnv:
     try:
         _import_pybullet_envs()
@@ -60,6 +64,6 @@ def make(name: str) -> HostEnv:
     return HostEnv(
         SPECS[f"pybullet/{name}"],
         lambda num_envs, seed: SequentialSimulators(
-            num_envs, seed, lambda index, seed: _make_one(gym_id, index, seed), _reset, _step
+            num_envs, seed, lambda index, seed: _make_one(gym_id, index, seed), _reset, _step, _close
         ),
     )

@@ -19,7 +19,7 @@ No checkpoint holds the simulators, so a resumed run starts fresh episodes in ne
 (`ppo.Trainer.restart_episodes`).
 
 The simulators auto-reset in the same step and keep the episode's last observation as
-`final_obs`, as `envs.VectorEnv` does for JAX environments, and report their own time limits
+`final_obs`, as `wrappers.VectorEnv` does for JAX environments, and report their own time limits
 as truncations.
 """
 
@@ -35,7 +35,7 @@ from flax import struct
 from jax.experimental import io_callback
 from jax.experimental.buffer_callback import buffer_callback
 
-from rpo_jax.envs import EnvSpec, TimeStep, _first_step
+from rpo_jax.envs.protocol import EnvSpec, TimeStep, first_step
 
 
 class HostSimulators(Protocol):
@@ -49,6 +49,10 @@ class HostSimulators(Protocol):
         """action [N, act] -> (obs, reward, terminated, truncated, final_obs). An environment
         whose episode ended starts a new one: `obs` is its first observation, `final_obs` the
         one the step reached."""
+        ...
+
+    def close(self) -> None:
+        """Frees the simulators; the pool is not stepped again."""
         ...
 
 
@@ -100,6 +104,12 @@ class BatchedHostEnv:
     def _host_step(self, handle: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, ...]:
         return self.pools[int(handle)].step(action)
 
+    def close(self) -> None:
+        """Closes and drops every pool that `reset` built; their handles are not valid any more."""
+        pools, self.pools = self.pools, {}
+        for pool in pools.values():
+            pool.close()
+
     def _call(self, host_fn: Callable[..., tuple], shapes: tuple, *args: jax.Array) -> tuple[jax.Array, ...]:
         """`host_fn` (numpy arrays in, a tuple of them out) called from the compiled program."""
         if not self.in_place:
@@ -125,7 +135,7 @@ class BatchedHostEnv:
         # seeds environment i with seed + i (envpool) stays within int32.
         seed = jax.random.randint(key, (), 0, 2**30, dtype=jnp.int32)
         handle, obs = self._call(self._host_reset, self.reset_shapes, seed)
-        return HostState(handle), _first_step(obs)
+        return HostState(handle), first_step(obs)
 
     def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
         obs, reward, terminated, truncated, final_obs = self._call(
@@ -137,7 +147,8 @@ class BatchedHostEnv:
 class SequentialSimulators:
     """A list of single-environment simulators stepped one after another in Python, each
     auto-reset when its episode ends. `make_one(index, seed)` builds one; `reset_one(sim)`
-    and `step_one(sim, action)` follow Gymnasium's reset/step signatures."""
+    and `step_one(sim, action)` follow Gymnasium's reset/step signatures; `close_one(sim)`,
+    if given, frees one (Gym's `env.close()`)."""
 
     def __init__(
         self,
@@ -146,9 +157,16 @@ class SequentialSimulators:
         make_one: Callable[[int, int], object],
         reset_one: Callable[[object], np.ndarray],
         step_one: Callable[[object, np.ndarray], tuple[np.ndarray, float, bool, bool]],
+        close_one: Callable[[object], None] | None = None,
     ) -> None:
         self.sims = [make_one(i, seed) for i in range(num_envs)]
-        self.reset_one, self.step_one = reset_one, step_one
+        self.reset_one, self.step_one, self.close_one = reset_one, step_one, close_one
+
+    def close(self) -> None:
+        sims, self.sims = self.sims, []
+        if self.close_one is not None:
+            for sim in sims:
+                self.close_one(sim)
 
     def reset(self) -> np.ndarray:
         return np.stack([self.reset_one(sim) for sim in self.sims])

@@ -11,7 +11,7 @@ action sequence against figures that benchmarks/dmc_reference.py took from dm_co
 envpool's XLA interface (FFI custom calls) would keep stepping inside the compiled program,
 but its pools are fixed (and seeded) when they are built and named by a static attribute of the
 call, so a program vmapped over runs cannot give each run its own pool seeded from its key. The
-pools are therefore stepped through `host.HostEnv`'s callbacks.
+pools are therefore stepped through `rpo_jax.envs.host.HostEnv`'s callbacks.
 
 Observations are flattened the way dm_control's wrappers do it: the task's observation keys in
 dm_control's order (the order its `get_observation` fills the dict, listed in `TASKS`), each
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from rpo_jax.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
-from rpo_jax.envs import EnvSpec, MissingExtraError
-from rpo_jax.host import HostEnv
+from rpo_jax.envs.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
+from rpo_jax.envs.host import HostEnv
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 
 
 def _spec(task: str) -> EnvSpec:
@@ -88,6 +88,9 @@ class DmcSimulators:
             fresh_id, fresh = self._flatten(self.pool.reset(np.flatnonzero(last)).observation)
             obs[fresh_id] = fresh
         return obs, reward, last & (discount == 0), last & (discount > 0), reached
+
+    def close(self) -> None:
+        self.pool.close()
 
 
 def make(task: str) -> HostEnv:

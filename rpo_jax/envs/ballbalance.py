@@ -1,17 +1,22 @@
-"""IsaacGym's BallBalance rebuilt as an MJX model: a tray on three legs keeps a ball on it."""
+"""IsaacGym's BallBalance rebuilt as an MJX model: a tray on three legs keeps a ball on it
+(`ballbalance`). MuJoCo is imported when the model is built, not with this module, so that the
+registry can list the environment without it."""
 
 from __future__ import annotations
 
 import math
 import warnings
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from flax import struct
 
-from rpo_jax.envs import EnvSpec, TimeStep, _first_step, mjx
+from rpo_jax.envs.protocol import EnvSpec, TimeStep, first_step
+
+if TYPE_CHECKING:
+    from mujoco import mjx
 
 TRAY_RADIUS = 0.5
 TRAY_HALF_THICKNESS = 0.01
@@ -41,6 +46,8 @@ BALL_GOAL = (0.0, 0.0, 0.7)
 FALL_HEIGHT = 1.5 * BALL_RADIUS
 SENSOR_SCALE = 1.0 / 20.0
 OBS_CLIP = 5.0
+
+SPEC = EnvSpec("ballbalance", 24, 3, (-1.0,) * 3, (1.0,) * 3, 500, "mjx")
 
 
 def ballbalance_xml() -> str:
@@ -209,9 +216,11 @@ class BallBalance:
     ball_height_range = (1.0, 2.0)
     ball_max_horizontal_speed = 5.0
     ball_vertical_speed = -5.0
-    spec = EnvSpec("ballbalance", 24, 3, (-1.0,) * 3, (1.0,) * 3, 500, "mjx")
+    spec = SPEC
 
     def __init__(self) -> None:
+        from rpo_jax.envs.mjx_support import mjx, mujoco
+
         self.mj_model = mujoco.MjModel.from_xml_string(ballbalance_xml())
         with warnings.catch_warnings():
             # MJX warns about the 40-gon faces for its polygon colliders; the sphere-convex one
@@ -255,7 +264,7 @@ class BallBalance:
         qpos = qpos.at[b + 3 : b + 7].set(jnp.array([1.0, 0.0, 0.0, 0.0]))
         qvel = jnp.zeros(self.mj_model.nv).at[v : v + 2].set(-speed * direction).at[v + 2].set(self.ball_vertical_speed)
         state = BallBalanceState(qpos=qpos, qvel=qvel, qacc_warmstart=self.rest_qacc, target=jnp.zeros(3))
-        return state, _first_step(self._observe(qpos, qvel, self.rest_sensors))
+        return state, first_step(self._observe(qpos, qvel, self.rest_sensors))
 
     def step(self, state: BallBalanceState, action: jax.Array) -> tuple[BallBalanceState, TimeStep]:
         state, data = self.simulate(state, action)
@@ -265,6 +274,8 @@ class BallBalance:
         """Moves the knee targets by the action and advances the physics one control step. The
         returned data holds the new qpos and qvel, and the sensor readings and frames of the
         forces that acted during the step."""
+        from rpo_jax.envs.mjx_support import mjx
+
         action = jnp.clip(action, -1.0, 1.0)
         target = jnp.clip(state.target + CONTROL_DT * ACTION_SPEED * action, self.knee_low, self.knee_high)
         data = self.data_template.replace(

@@ -9,7 +9,7 @@ solver settings), so returns are close to dm_control's but not equal.
 
 MJX runs through its JAX implementation (`impl='jax'`), which works on every JAX backend;
 Playground's default, MuJoCo Warp, needs an NVIDIA GPU. Playground's `done` (a diverged
-simulation) is a termination; its 1000-step episodes are `envs.TimeLimit` truncations.
+simulation) is a termination; its 1000-step episodes are `wrappers.TimeLimit` truncations.
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ from typing import Any
 
 import jax
 
-from rpo_jax.dmc_tasks import EPISODE_STEPS, PLAYGROUND_NAMES, TASKS
-from rpo_jax.envs import DoneIsTermination, EnvSpec, MissingExtraError
+from rpo_jax.envs.dmc_tasks import EPISODE_STEPS, PLAYGROUND_NAMES, TASKS
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
+from rpo_jax.envs.wrappers import DoneIsTermination
 
 
 def _spec(task: str) -> EnvSpec:

@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax.envs import EnvSpec, MissingExtraError, TimeStep, _first_step
-from rpo_jax.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError, TimeStep, first_step
 
 PENDULUM_SPEC = EnvSpec("gym/Pendulum-v1", 3, 1, (-2.0,), (2.0,), 200, "jax")
 BIPEDAL_WALKER_SPEC = EnvSpec("gym/BipedalWalker-v3", 24, 4, (-1.0,) * 4, (1.0,) * 4, 1600, "host")
@@ -21,7 +21,7 @@ SPECS = {spec.name: spec for spec in (PENDULUM_SPEC, BIPEDAL_WALKER_SPEC)}
 class Pendulum:
     """Gym's Pendulum-v1 as gymnax implements it: observation (cos th, sin th, th_dot), torque
     in [-2, 2], reward -(th^2 + 0.1 th_dot^2 + 0.001 u^2), no termination. gymnax's own `done`
-    (its time limit) is dropped; `envs.TimeLimit` truncates after 200 steps instead."""
+    (its time limit) is dropped; `wrappers.TimeLimit` truncates after 200 steps instead."""
 
     spec = PENDULUM_SPEC
 
@@ -34,7 +34,7 @@ class Pendulum:
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
         obs, state = self.env.reset_env(key, self.params)
-        return state, _first_step(obs)
+        return state, first_step(obs)
 
     def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
         # Pendulum's dynamics draw no randomness; the key is only part of gymnax's signature.
@@ -62,6 +62,10 @@ def _step(env: Any, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
     return obs, reward, terminated, truncated
 
 
+def _close(env: Any) -> None:
+    env.close()
+
+
 def bipedal_walker() -> HostEnv:
     """Gymnasium's BipedalWalker-v3 (Box2D), stepped on the host."""
     missing = MissingExtraError(BIPEDAL_WALKER_SPEC.name, "gymnasium[box2d]", "gym")
@@ -75,5 +79,5 @@ def bipedal_walker() -> HostEnv:
         raise missing from None
     return HostEnv(
         BIPEDAL_WALKER_SPEC,
-        lambda num_envs, seed: SequentialSimulators(num_envs, seed, _bipedal_walker, _reset, _step),
+        lambda num_envs, seed: SequentialSimulators(num_envs, seed, _bipedal_walker, _reset, _step, _close),
     )

@@ -1,0 +1,79 @@
+"""Environments behind one protocol, the wrappers that training puts around them, and a
+registry of them by name.
+
+- `protocol`: `Env` (`reset(key)`, `step(state, action)` and a static `EnvSpec`), its
+  `TimeStep`, and the batched, host-side and renderable kinds.
+- `wrappers`: time limit and auto-reset, `VectorEnv` (vmapped copies of one JAX environment),
+  the batch wrappers (episode statistics, action clipping, reward and observation
+  normalisation), and `vectorize`.
+- `registry`: `make_env`, `env_spec`, `env_names`, `make_vector_env` and `register_env` for
+  environments of one's own; `python -m rpo_jax.envs` lists the registered names.
+- one module per simulator family: `cartpole` and `ballbalance` (MJX), `brax`, `playground`
+  (MuJoCo Playground's DeepMind Control on MJX), and the host-side suites `gym`, `pybullet` and
+  `dmc` (envpool's DeepMind Control), which `host` puts behind the batched protocol.
+
+Importing this package imports no simulator; each family imports its own when one of its
+environments is built.
+"""
+
+import os
+
+# MuJoCo fixes its OpenGL backend at import. Without a display only an offscreen one can work,
+# so pick EGL there unless the user chose (rendering is only used by `rpo_jax.evaluate --video`).
+if not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+from rpo_jax.envs.host import HostEnv, SequentialSimulators  # noqa: E402
+from rpo_jax.envs.protocol import (  # noqa: E402
+    BatchedEnv,
+    Env,
+    EnvSpec,
+    MissingExtraError,
+    Renderable,
+    TimeStep,
+    Vectorizable,
+    first_step,
+)
+from rpo_jax.envs.registry import env_names, env_spec, make_env, make_vector_env, register_env  # noqa: E402
+from rpo_jax.envs.wrappers import (  # noqa: E402
+    AutoReset,
+    ClipAction,
+    DoneIsTermination,
+    EpisodeStatistics,
+    NormalizeObservation,
+    NormalizeReward,
+    RunningMeanStd,
+    TimeLimit,
+    VectorEnv,
+    normalize_observation,
+    vectorize,
+)
+
+__all__ = [
+    "AutoReset",
+    "BatchedEnv",
+    "ClipAction",
+    "DoneIsTermination",
+    "Env",
+    "EnvSpec",
+    "EpisodeStatistics",
+    "HostEnv",
+    "MissingExtraError",
+    "NormalizeObservation",
+    "NormalizeReward",
+    "Renderable",
+    "RunningMeanStd",
+    "SequentialSimulators",
+    "TimeLimit",
+    "TimeStep",
+    "VectorEnv",
+    "Vectorizable",
+    "env_names",
+    "env_spec",
+    "first_step",
+    "make_env",
+    "make_vector_env",
+    "normalize_observation",
+    "register_env",
+    "vectorize",
+]

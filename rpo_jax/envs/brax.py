@@ -1,0 +1,61 @@
+"""Brax's own environments (`brax/<name>`), with Brax's usual 1000-step episodes. Brax is
+imported when an environment is built; `SPECS` lists them without it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+
+from rpo_jax.envs.protocol import EnvSpec
+from rpo_jax.envs.wrappers import DoneIsTermination
+
+EPISODE_STEPS = 1000
+
+# Observation size, action size and backend of Brax's physics tasks (not its `fast`, a
+# stand-in with no physics system for Brax's own tests), so that listing them does not build
+# their systems (minutes on a CPU); tests/test_registry.py checks them against the built
+# environments.
+BRAX_SPECS = {
+    "ant": (27, 8, "generalized"), "halfcheetah": (17, 6, "generalized"),
+    "hopper": (11, 3, "generalized"), "humanoid": (244, 17, "generalized"),
+    "humanoidstandup": (244, 17, "generalized"), "inverted_double_pendulum": (8, 1, "generalized"),
+    "inverted_pendulum": (4, 1, "generalized"), "pusher": (23, 7, "generalized"),
+    "reacher": (11, 2, "generalized"), "swimmer": (8, 2, "generalized"), "walker2d": (17, 6, "generalized"),
+}  # fmt: skip
+BRAX_ENVS = tuple(BRAX_SPECS)
+
+
+def _spec(name: str, observation_size: int, action_size: int, backend: str) -> EnvSpec:
+    high = (1.0,) * action_size
+    return EnvSpec(
+        f"brax/{name}", observation_size, action_size, tuple(-h for h in high), high, EPISODE_STEPS, f"brax-{backend}"
+    )
+
+
+SPECS = {f"brax/{name}": _spec(name, *facts) for name, facts in BRAX_SPECS.items()}
+
+
+class BraxEnv(DoneIsTermination):
+    """One of Brax's own environments (`brax/<name>`), with Brax's usual 1000-step episodes."""
+
+    def __init__(self, name: str, backend: str | None = None) -> None:
+        from brax import envs as brax_envs
+
+        kwargs = {"backend": backend} if backend else {}
+        self.env = brax_envs.get_environment(name, **kwargs)
+        high = (1.0,) * self.env.action_size
+        self.spec = EnvSpec(
+            f"brax/{name}",
+            int(self.env.observation_size),
+            int(self.env.action_size),
+            tuple(-h for h in high),
+            high,
+            EPISODE_STEPS,
+            f"brax-{getattr(self.env, 'backend', backend or 'default')}",
+        )
+        self.mj_model, self.control_dt = self.env.sys.mj_model, float(self.env.dt)
+
+    @staticmethod
+    def qpos(state: Any) -> jax.Array:
+        return state.pipeline_state.q

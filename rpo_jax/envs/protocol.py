@@ -1,0 +1,112 @@
+"""The environment protocol: what every environment and wrapper in `rpo_jax.envs` implements.
+
+The protocol (`Env`) is two pure functions and a spec:
+
+    state, ts = env.reset(key)
+    state, ts = env.step(state, action)
+
+`ts` is a `TimeStep`: the observation to act on next, the reward, separate termination and
+truncation flags, and `final_obs`, the observation the step actually reached. After an
+auto-reset, `obs` is the first observation of the new episode while `final_obs` keeps the
+last one of the old episode, so a truncated episode can still be bootstrapped.
+
+A single JAX environment (Cartpole on MJX, a Brax environment) returns unbatched arrays; a
+`BatchedEnv` gives the same protocol with a leading batch axis of `num_envs`. Host-side
+environments (`Vectorizable`) exist only batched and build their batch themselves.
+
+This module imports jax and flax only, no simulator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+if TYPE_CHECKING:
+    import mujoco
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvSpec:
+    """Static facts of an environment."""
+
+    name: str
+    observation_size: int
+    action_size: int
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+    max_episode_steps: int
+    backend: str
+
+    @property
+    def runs_on_host(self) -> bool:
+        """Whether the simulator runs on the host, outside JAX (so no checkpoint holds its state)."""
+        return self.backend == "host"
+
+
+@struct.dataclass
+class TimeStep:
+    """What reset and step return. Shapes are [] / [obs] for one environment, [N] / [N, obs] batched."""
+
+    obs: jax.Array
+    reward: jax.Array
+    terminated: jax.Array
+    truncated: jax.Array
+    final_obs: jax.Array
+    info: dict[str, jax.Array] = struct.field(default_factory=dict)
+
+
+class Env(Protocol):
+    """What the trainer drives. The batch wrappers also define `restart(state, key)`: fresh
+    episodes that keep the statistics in `state` (plain `reset` for those that keep none),
+    which a resumed host run calls when it starts its simulators again."""
+
+    spec: EnvSpec
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]: ...
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]: ...
+
+
+@runtime_checkable
+class BatchedEnv(Env, Protocol):
+    """An environment whose arrays carry a leading batch axis of `num_envs`."""
+
+    num_envs: int
+
+
+@runtime_checkable
+class Vectorizable(Protocol):
+    """An environment that builds its own batch (the host-side ones): `vectorize(num_envs)`
+    gives the batched environment the trainer steps."""
+
+    spec: EnvSpec
+
+    def vectorize(self, num_envs: int) -> BatchedEnv: ...
+
+
+@runtime_checkable
+class Renderable(Protocol):
+    """What a MuJoCo-based environment adds so that `rpo_jax.evaluate --video` can draw it."""
+
+    mj_model: mujoco.MjModel
+    control_dt: float  # seconds per step, for the video's frame rate
+
+    def qpos(self, state: Any) -> jax.Array: ...
+
+
+def first_step(obs: jax.Array) -> TimeStep:
+    """The time step of a reset: `obs` [..., obs_size], no reward, no episode ended."""
+    false = jnp.zeros(obs.shape[:-1], bool)
+    return TimeStep(obs, jnp.zeros(obs.shape[:-1]), false, false, obs)
+
+
+class MissingExtraError(ValueError):
+    """An environment needs an optional dependency that is not installed."""
+
+    def __init__(self, name: str, module: str, extra: str) -> None:
+        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install -e '.[{extra}]'")

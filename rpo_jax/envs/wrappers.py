@@ -1,0 +1,294 @@
+"""Wrappers around the protocol's environments: the per-environment ones that `VectorEnv` puts
+around a single JAX environment (time limit, auto-reset), and the batch wrappers that training
+puts around any batched environment (episode statistics, action clipping, reward and
+observation normalisation). `vectorize` batches a single JAX environment or a host-side one.
+
+Every batch wrapper defines `restart(state, key)` besides `reset`: fresh episodes in every
+environment that keep the running statistics in `state`, for a resumed run whose simulators
+were not in its checkpoint.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from rpo_jax.envs.protocol import BatchedEnv, Env, TimeStep, Vectorizable, first_step
+
+# --------------------------------------------------------------------------------------------
+# Adapter of environments that report `done`
+
+
+class DoneIsTermination:
+    """Adapts `self.env`, whose `reset(key)` and `step(state, action)` return a state with `obs`,
+    `reward` and `done` (Brax's and MuJoCo Playground's environments), to the protocol: `done`
+    is a termination, and the time limit is left to `TimeLimit`."""
+
+    env: Any
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        state = self.env.reset(key)
+        return state, first_step(state.obs)
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        state = self.env.step(state, action)
+        terminated = state.done.astype(bool)
+        return state, TimeStep(state.obs, state.reward, terminated, jnp.zeros((), bool), state.obs)
+
+
+# --------------------------------------------------------------------------------------------
+# Wrappers of one environment
+
+
+@struct.dataclass
+class TimeLimitState:
+    inner: Any
+    elapsed: jax.Array  # [] steps taken in the current episode
+
+
+class TimeLimit:
+    """Truncates an episode after `spec.max_episode_steps` steps, unless that step terminated it."""
+
+    def __init__(self, env: Env) -> None:
+        self.env, self.spec = env, env.spec
+
+    def reset(self, key: jax.Array) -> tuple[TimeLimitState, TimeStep]:
+        state, ts = self.env.reset(key)
+        return TimeLimitState(state, jnp.zeros((), jnp.int32)), ts
+
+    def step(self, state: TimeLimitState, action: jax.Array) -> tuple[TimeLimitState, TimeStep]:
+        inner, ts = self.env.step(state.inner, action)
+        elapsed = state.elapsed + 1
+        truncated = ts.truncated | ((elapsed >= self.spec.max_episode_steps) & ~ts.terminated)
+        return TimeLimitState(inner, elapsed), ts.replace(truncated=truncated)
+
+
+@struct.dataclass
+class AutoResetState:
+    inner: Any
+    key: jax.Array
+
+
+class AutoReset:
+    """Starts a new episode inside `step` when one ends. `obs` becomes the new episode's first
+    observation; `final_obs`, the flags and the reward stay those of the step that ended it."""
+
+    def __init__(self, env: Env) -> None:
+        self.env, self.spec = env, env.spec
+
+    def reset(self, key: jax.Array) -> tuple[AutoResetState, TimeStep]:
+        key, reset_key = jax.random.split(key)
+        state, ts = self.env.reset(reset_key)
+        return AutoResetState(state, key), ts
+
+    def step(self, state: AutoResetState, action: jax.Array) -> tuple[AutoResetState, TimeStep]:
+        inner, ts = self.env.step(state.inner, action)
+        key, reset_key = jax.random.split(state.key)
+        fresh, fresh_ts = self.env.reset(reset_key)
+        done = ts.terminated | ts.truncated
+        inner = jax.tree.map(lambda new, old: jnp.where(done, new, old), fresh, inner)
+        ts = ts.replace(obs=jnp.where(done, fresh_ts.obs, ts.obs), final_obs=ts.obs)
+        return AutoResetState(inner, key), ts
+
+
+class VectorEnv:
+    """`num_envs` copies of one JAX environment, auto-reset, stepped in one vmapped call."""
+
+    def __init__(self, env: Env, num_envs: int) -> None:
+        self.env = AutoReset(TimeLimit(env))
+        self.spec, self.num_envs = env.spec, num_envs
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        return jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs))
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        return jax.vmap(self.env.step)(state, action)
+
+
+# --------------------------------------------------------------------------------------------
+# Wrappers of a batched environment
+
+
+@struct.dataclass
+class EpisodeStatisticsState:
+    inner: Any
+    episode_return: jax.Array  # [N] undiscounted return of the running episode
+    episode_length: jax.Array  # [N]
+
+
+class EpisodeStatistics:
+    """Adds `info["episode_return"]` and `info["episode_length"]`: for an environment whose
+    episode ended at this step, the raw return and length of that episode; 0 elsewhere.
+
+    The innermost batch wrapper: the others' `restart` ends in this one's, a plain reset."""
+
+    def __init__(self, env: Env) -> None:
+        self.env, self.spec = env, env.spec
+
+    def reset(self, key: jax.Array) -> tuple[EpisodeStatisticsState, TimeStep]:
+        state, ts = self.env.reset(key)
+        zeros = jnp.zeros(ts.reward.shape)
+        return EpisodeStatisticsState(state, zeros, zeros.astype(jnp.int32)), ts
+
+    def restart(self, state: EpisodeStatisticsState, key: jax.Array) -> tuple[EpisodeStatisticsState, TimeStep]:
+        # Nothing outlives an episode here: the running returns and lengths start again.
+        return self.reset(key)
+
+    def step(self, state: EpisodeStatisticsState, action: jax.Array):
+        inner, ts = self.env.step(state.inner, action)
+        episode_return = state.episode_return + ts.reward
+        episode_length = state.episode_length + 1
+        done = ts.terminated | ts.truncated
+        info = dict(
+            ts.info,
+            episode_return=jnp.where(done, episode_return, 0.0),
+            episode_length=jnp.where(done, episode_length, 0),
+        )
+        state = EpisodeStatisticsState(
+            inner, jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length)
+        )
+        return state, ts.replace(info=info)
+
+
+class ClipAction:
+    """Clips actions to the spec's bounds before the simulator sees them; the trainer's buffer
+    keeps the unclipped sample, so log-probabilities stay those of the sampled action."""
+
+    def __init__(self, env: Env) -> None:
+        self.env, self.spec = env, env.spec
+        self.low = jnp.asarray(env.spec.action_low, jnp.float32)
+        self.high = jnp.asarray(env.spec.action_high, jnp.float32)
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        return self.env.reset(key)
+
+    def restart(self, state: Any, key: jax.Array) -> tuple[Any, TimeStep]:
+        return self.env.restart(state, key)
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        return self.env.step(state, jnp.clip(action, self.low, self.high))
+
+
+@struct.dataclass
+class RunningMeanStd:
+    """Mean and variance of a stream of batches (Chan et al.'s parallel update)."""
+
+    mean: jax.Array
+    var: jax.Array
+    count: jax.Array
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, ...]) -> "RunningMeanStd":
+        # A tiny prior count keeps the first update well defined, as in Gym's wrappers.
+        return cls(jnp.zeros(shape), jnp.ones(shape), jnp.asarray(1e-4))
+
+    def update(self, batch: jax.Array) -> "RunningMeanStd":
+        """batch: [B, *shape]."""
+        batch_mean, batch_var = batch.mean(0), batch.var(0)
+        batch_count = batch.shape[0]
+        delta = batch_mean - self.mean
+        count = self.count + batch_count
+        mean = self.mean + delta * batch_count / count
+        m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / count
+        return RunningMeanStd(mean, m2 / count, count)
+
+    def standardize(self, x: jax.Array) -> jax.Array:
+        return (x - self.mean) / jnp.sqrt(self.var + 1e-8)
+
+    def unstandardize(self, x: jax.Array) -> jax.Array:
+        return x * jnp.sqrt(self.var + 1e-8) + self.mean
+
+
+def normalize_observation(obs: jax.Array, stats: RunningMeanStd, clip: float) -> jax.Array:
+    """(obs - mean) / std, clipped to +-clip. obs: [..., obs_size]."""
+    return jnp.clip(stats.standardize(obs), -clip, clip)
+
+
+@struct.dataclass
+class NormalizeObservationState:
+    inner: Any
+    obs_stats: RunningMeanStd
+
+
+class NormalizeObservation:
+    """Normalises observations (and final observations) by running statistics of the
+    observations seen so far, updated on every batch, then clips them.
+
+    With `enabled=False` observations pass through unchanged and the statistics stay at their
+    initial values, so the state keeps one layout either way."""
+
+    def __init__(self, env: Env, clip: float, enabled: bool = True) -> None:
+        self.env, self.spec, self.clip, self.enabled = env, env.spec, clip, enabled
+
+    def reset(self, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
+        state, ts = self.env.reset(key)
+        stats = RunningMeanStd.zeros((self.spec.observation_size,))
+        return self._output(state, stats, ts)
+
+    def restart(self, state: NormalizeObservationState, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
+        # The statistics are the checkpoint's, not updated, so that they go on as if never stopped.
+        inner, ts = self.env.restart(state.inner, key)
+        return self._output(inner, state.obs_stats, ts, update=False)
+
+    @staticmethod
+    def statistics(state: NormalizeObservationState) -> RunningMeanStd:
+        """The running statistics of the observations in `state` (what a saved policy keeps)."""
+        return state.obs_stats
+
+    def step(self, state: NormalizeObservationState, action: jax.Array):
+        inner, ts = self.env.step(state.inner, action)
+        return self._output(inner, state.obs_stats, ts)
+
+    def _output(self, inner: Any, stats: RunningMeanStd, ts: TimeStep, update: bool = True):
+        if not self.enabled:
+            return NormalizeObservationState(inner, stats), ts
+        if update:
+            stats = stats.update(ts.obs)
+        return NormalizeObservationState(inner, stats), ts.replace(
+            obs=normalize_observation(ts.obs, stats, self.clip),
+            final_obs=normalize_observation(ts.final_obs, stats, self.clip),
+        )
+
+
+@struct.dataclass
+class NormalizeRewardState:
+    inner: Any
+    discounted_return: jax.Array  # [N]
+    return_stats: RunningMeanStd
+
+
+class NormalizeReward:
+    """Scales rewards by `scale`, then (if `normalize`) divides them by the running standard
+    deviation of the discounted return and clips them, as Gym's NormalizeReward did for the
+    paper. The discounted return restarts when an episode ends."""
+
+    def __init__(self, env: Env, gamma: float, clip: float, scale: float, normalize: bool) -> None:
+        self.env, self.spec = env, env.spec
+        self.gamma, self.clip, self.scale, self.normalize = gamma, clip, scale, normalize
+
+    def reset(self, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
+        state, ts = self.env.reset(key)
+        return NormalizeRewardState(state, jnp.zeros(ts.reward.shape), RunningMeanStd.zeros(())), ts
+
+    def restart(self, state: NormalizeRewardState, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
+        inner, ts = self.env.restart(state.inner, key)
+        return NormalizeRewardState(inner, jnp.zeros(ts.reward.shape), state.return_stats), ts
+
+    def step(self, state: NormalizeRewardState, action: jax.Array):
+        inner, ts = self.env.step(state.inner, action)
+        reward = ts.reward * self.scale
+        discounted = state.discounted_return * self.gamma + reward
+        stats = state.return_stats.update(discounted)
+        if self.normalize:
+            reward = jnp.clip(reward / jnp.sqrt(stats.var + 1e-8), -self.clip, self.clip)
+        discounted = jnp.where(ts.terminated | ts.truncated, 0.0, discounted)
+        return NormalizeRewardState(inner, discounted, stats), ts.replace(reward=reward)
+
+
+def vectorize(env: Env, num_envs: int) -> BatchedEnv:
+    """`num_envs` auto-resetting copies of `env` behind the batched protocol: vmapped for a JAX
+    environment, a pool of host simulators for a host-side one."""
+    return env.vectorize(num_envs) if isinstance(env, Vectorizable) else VectorEnv(env, num_envs)
