@@ -18,9 +18,10 @@ from pathlib import Path
 import jax
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import PRESETS, Config
 
 
-def timed_training(config: ppo.Config, env: envs.Env, num_seeds: int, repeats: int) -> float:
+def timed_training(config: Config, env: envs.Env, num_seeds: int, repeats: int) -> float:
     train = ppo.make_train(config, env)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
     compiled = jax.jit(jax.vmap(train)).lower(keys).compile()
@@ -35,7 +36,7 @@ def timed_training(config: ppo.Config, env: envs.Env, num_seeds: int, repeats: i
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="cartpole")
-    parser.add_argument("--preset", choices=sorted(ppo.PRESETS), help="default: the CPU config")
+    parser.add_argument("--preset", choices=sorted(PRESETS), help="default: the CPU config")
     parser.add_argument("--seeds", type=int, default=10)
     parser.add_argument("--total-timesteps", type=int, default=204_800)
     parser.add_argument("--num-envs", type=int, help="override the preset's environments per seed")
@@ -43,7 +44,7 @@ def main() -> int:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
 
-    config = ppo.PRESETS[args.preset] if args.preset else ppo.Config()
+    config = PRESETS[args.preset] if args.preset else Config()
     config = dataclasses.replace(config, total_timesteps=args.total_timesteps, rpo_alpha=0.5)
     if args.num_envs:
         config = dataclasses.replace(config, num_envs=args.num_envs)

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import PRESETS
 from rpo_jax.envs.host import HostEnv
 
 
@@ -79,12 +80,12 @@ def raw_host_steps_per_second(env: HostEnv, num_envs: int, num_steps: int, repea
 def train_steps_per_second(
     name: str, preset: str, num_envs: int, num_updates: int, repeats: int
 ) -> tuple[float, float]:
-    config = dataclasses.replace(ppo.PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
+    config = dataclasses.replace(PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
     trainer = ppo.make_trainer(config, envs.make_env(name))
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
     start = time.perf_counter()
-    run = jax.jit(lambda s: trainer.run(s, num_updates)).lower(state).compile()
+    run = jax.jit(lambda s: trainer.scan_updates(s, num_updates)).lower(state).compile()
     compile_seconds = time.perf_counter() - start
     jax.block_until_ready(run(state))  # warm-up
     return config.batch_size * num_updates / best_of(lambda: run(state), repeats), compile_seconds
@@ -95,7 +96,7 @@ def main() -> int:
     parser.add_argument("--env", default="cartpole")
     parser.add_argument("--num-envs", type=int, default=1024)
     parser.add_argument(
-        "--preset", default="isaacgym", choices=sorted(ppo.PRESETS), help="config of the timed training"
+        "--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training"
     )
     parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
     parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")

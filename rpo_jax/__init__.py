@@ -3,11 +3,14 @@
 import importlib
 from typing import Any
 
-# Imported on first use, so that `python -m rpo_jax.envs` runs its module once (the package
-# would otherwise import rpo_jax.envs first, through rpo_jax.ppo).
-_EXPORTS = {"load_policy": "rpo_jax.policy", **dict.fromkeys(["PRESETS", "Config", "make_train", "make_trainer"], "rpo_jax.ppo")}
+# Imported on first use, so that `import rpo_jax` (and every command's --help) loads no JAX.
+_EXPORTS = {
+    "Config": "rpo_jax.config", "PRESETS": "rpo_jax.config", "ALGORITHMS": "rpo_jax.config",
+    "make_train": "rpo_jax.ppo", "make_trainer": "rpo_jax.ppo", "load_policy": "rpo_jax.policy",
+    "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs",
+}  # fmt: skip
 
-__all__ = ["Config", "PRESETS", "load_policy", "make_train", "make_trainer"]
+__all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str) -> Any:

@@ -19,9 +19,6 @@ import jax
 import jax.numpy as jnp
 import orbax.checkpoint as ocp
 
-CHECKPOINT_DIR = "checkpoints"
-
-
 class CheckpointMismatch(ValueError):
     """The saved state does not have the structure the current config builds."""
 
@@ -55,14 +52,15 @@ def _with_empty(restored: Any, abstract_state: Any) -> Any:
 
 
 class Checkpointer:
-    """Saves and restores the batched training state of one run directory, keeping the last two."""
+    """Saves and restores the batched training state of one run in `directory` (a run
+    directory's `checkpoints/`), keeping the last two."""
 
-    def __init__(self, run_dir: Path) -> None:
+    def __init__(self, directory: Path) -> None:
         options = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
         # Handlers named up front so that a fresh process can read a checkpoint's metadata.
         handlers = {"state": ocp.StandardCheckpointHandler(), "record": ocp.JsonCheckpointHandler()}
         self.manager = ocp.CheckpointManager(
-            (Path(run_dir) / CHECKPOINT_DIR).absolute(), options=options, item_handlers=handlers
+            Path(directory).absolute(), options=options, item_handlers=handlers
         )
 
     def latest_update(self) -> int | None:

@@ -16,7 +16,6 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 from __future__ import annotations
 
 import copy
-import json
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
@@ -26,8 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from rpo_jax import envs
-from rpo_jax.cli import ArgumentParser, UsageError, usage_failure
-from rpo_jax.policy import PARAMS_FILE, load_policy
+from rpo_jax.cli import ArgumentParser
+from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.policy import load_policy
+from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 
 def episode_returns(
@@ -74,16 +75,16 @@ def record_video(
     if not isinstance(env, envs.Renderable):
         raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
 
-    episode_env = envs.TimeLimit(env)
-    reset, step = jax.jit(episode_env.reset), jax.jit(episode_env.step)
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
     act = jax.jit(lambda obs, key: policy(obs, key, deterministic))
     reset_key, key = jax.random.split(key)
     state, ts = reset(reset_key)
-    positions, total, length = [np.asarray(env.qpos(state.inner))], 0.0, 0
-    while not bool(ts.terminated | ts.truncated) or length == 0:
+    positions, total, length = [np.asarray(env.qpos(state))], 0.0, 0
+    # The episode ends as TimeLimit would end it: at termination or after max_episode_steps.
+    while length < env.spec.max_episode_steps and not (length and bool(ts.terminated | ts.truncated)):
         key, act_key = jax.random.split(key)
         state, ts = step(state, act(ts.obs, act_key))
-        positions.append(np.asarray(env.qpos(state.inner)))
+        positions.append(np.asarray(env.qpos(state)))
         total, length = total + float(ts.reward), length + 1
 
     # A copy lit by a brighter headlight (models written for simulation often have no lights),
@@ -129,11 +130,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
         if args.episodes < 1:
             raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
-        if not (args.run_dir / PARAMS_FILE).is_file():
+        run_dir = RunDir(args.run_dir)
+        if not run_dir.has_params():
             raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
         if args.video and args.video.exists():
             raise UsageError(f"--video {args.video} already exists; choose a new file")
-        saved = json.loads((args.run_dir / "config.json").read_text())
+        saved = run_dir.read_config()
         if not 0 <= args.run < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
         env = envs.make_env(saved["env"])

@@ -4,8 +4,8 @@
     python -m rpo_jax.experiment ppo-vs-rpo --suite gym --seeds 3
     python -m rpo_jax.experiment long-horizon --timesteps 20000000
 
-Each (environment, job) is one `rpo_jax.train` run: its seeds, and the values of a swept
-hyperparameter where a job has one, train together in one compiled program. Everything goes
+Each (environment, job) is one training run (`rpo_jax.runner`): its seeds, and the values of a
+swept hyperparameter where a job has one, train together in one compiled program. Everything goes
 under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md` and
 `figures/` (see `rpo_jax.report`).
 
@@ -22,11 +22,15 @@ import json
 import shutil
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
-from rpo_jax import envs, ppo, report, train
+from rpo_jax import envs, report
+from rpo_jax.cli import ArgumentParser
+from rpo_jax.config import PRESETS, SWEEPABLE
 from rpo_jax.envs import dmc_tasks
-from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_json
+from rpo_jax.errors import Interrupted, UsageError, usage_failure
+from rpo_jax.files import write_json
+from rpo_jax.rundir import RunDir
 
 SUITES: dict[str, tuple[str, ...]] = {
     "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
@@ -48,20 +52,20 @@ RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
 
 @dataclasses.dataclass(frozen=True)
 class Job:
-    """One training run per environment: `algo` with extra train flags, and optionally one
-    swept hyperparameter whose values become variants of their own."""
+    """One training run per environment: `algo` with config fields of its own, and optionally
+    one swept hyperparameter whose values become variants of their own."""
 
     name: str
     algo: str
-    flags: tuple[str, ...] = ()
+    config: tuple[tuple[str, Any], ...] = ()
     sweep: tuple[str, tuple[float, ...]] | None = None
 
-    def train_args(self) -> list[str]:
-        args = ["--algo", self.algo, *self.flags]
-        if self.sweep:
-            name, values = self.sweep
-            args += ["--sweep", f"{name}={','.join(f'{v:g}' for v in values)}"]
-        return args
+    def sweep_specs(self) -> list[str]:
+        """The sweep as --sweep gives it: NAME=V1,V2,..."""
+        if not self.sweep:
+            return []
+        name, values = self.sweep
+        return [f"{name}={','.join(f'{v:g}' for v in values)}"]
 
     def variant(self, hparams: dict[str, float]) -> str:
         """The label of a run of this job in results.csv and the report."""
@@ -83,7 +87,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     "entropy-reg": Experiment((Job("ppo", "ppo", sweep=("ent_coef", ENTROPY_COEFS)), RPO), "dmc"),
     "distributions": Experiment(
         tuple(
-            Job(f"{algo}-{dist}", algo, ("--dist", dist))
+            Job(f"{algo}-{dist}", algo, (("dist", dist),))
             for dist in ("gaussian", "laplace", "gumbel")
             for algo in ("ppo", "rpo")
         ),
@@ -111,7 +115,7 @@ def build_parser() -> ArgumentParser:
     )  # fmt: skip
     parser.add_argument("--num-envs", type=int, help="parallel environments per run (default: the preset's)")
     parser.add_argument(
-        "--preset", choices=sorted(ppo.PRESETS),
+        "--preset", choices=sorted(PRESETS),
         help="config for every environment (default: rl_games' for the IsaacGym tasks, paper for the rest)",
     )  # fmt: skip
     parser.add_argument("--checkpoint-every", type=int, metavar="STEPS", help="as for rpo_jax.train")
@@ -169,39 +173,44 @@ def prepare_out(out: Path, definition: dict) -> None:
     write_json(record, definition)
 
 
-def train_argv(definition: dict, env: str, job: Job, directory: Path) -> list[str]:
+def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
+    """The training run of `job` on `env`, as a runner plan."""
+    from rpo_jax import runner
+
     preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
-    argv = ["--env", env, "--preset", preset, *job.train_args(), "--seed", "1"]
-    argv += ["--num-seeds", str(definition["seeds"]), "--total-timesteps", str(definition["timesteps"])]
+    overrides = {"algo": job.algo, **dict(job.config), "total_timesteps": definition["timesteps"]}
     if definition["num_envs"]:
-        argv += ["--num-envs", str(definition["num_envs"])]
-    if definition["checkpoint_every"] is not None:
-        argv += ["--checkpoint-every", str(definition["checkpoint_every"])]
-    return argv + ["--out", str(directory)]
+        overrides["num_envs"] = definition["num_envs"]
+    return runner.new_plan(
+        out=directory, env=env, config=dataclasses.replace(PRESETS[preset], **overrides), preset=preset,
+        seed=1, num_seeds=definition["seeds"], sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
+    )  # fmt: skip
 
 
-def run(args: argparse.Namespace) -> Path:
+def run_experiment(args: argparse.Namespace) -> Path:
+    from rpo_jax import runner
+    from rpo_jax.train import train_with_display
+
     definition = resolve(args)
     out = args.out or Path("experiments") / args.name
     prepare_out(out, definition)
     jobs = EXPERIMENTS[args.name].jobs  # experiment.json holds the same, prepare_out checked it
-    parser = train.build_parser()
     total = len(definition["envs"]) * len(jobs)
     for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
         directory = run_dir(out, env, job)
         prefix = f"[{index}/{total}] {env} {job.name}"
-        if (directory / "summary.json").is_file():
+        if RunDir(directory).is_finished():
             print(f"{prefix}: finished earlier", flush=True)
             continue
-        if (directory / "config.json").is_file():
-            argv = ["--resume", str(directory)]
+        if RunDir(directory).has_config():
+            plan = runner.resumed_plan(directory)
             print(f"{prefix}: resuming", flush=True)
         else:
             # Killed before its config was written: nothing of the run exists yet.
             shutil.rmtree(directory, ignore_errors=True)
-            argv = train_argv(definition, env, job, directory)
+            plan = job_plan(definition, env, job, directory)
             print(f"{prefix}: training", flush=True)
-        summary = train.train(parser.parse_args(argv + (["--quiet"] if args.quiet else [])))
+        summary = train_with_display(plan, args.quiet)
         print(f"{prefix}: final return {summary['final_return_mean']:.2f}, {summary['sps']:,.0f} steps/s", flush=True)
         report.write_results(out, collect_rows(out, definition, jobs))
     report.build(out, [out])
@@ -213,12 +222,11 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
     rows = []
     for env in definition["envs"]:
         for job in jobs:
-            directory = run_dir(out, env, job)
-            if not (directory / "summary.json").is_file():
+            directory = RunDir(run_dir(out, env, job))
+            if not directory.is_finished():
                 continue
-            config = json.loads((directory / "config.json").read_text())
-            for line in (directory / "metrics.jsonl").read_text().splitlines():
-                metrics = json.loads(line)
+            config = directory.read_config()
+            for metrics in directory.read_metrics():
                 rows.append(
                     {
                         "experiment": definition["experiment"],
@@ -226,7 +234,7 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
                         "variant": job.variant(metrics),
                         "algo": config["algo"],
                         "dist": config["config"]["dist"],
-                        **{name: metrics[name] for name in ppo.SWEEPABLE},
+                        **{name: metrics[name] for name in SWEEPABLE},
                         "seed": metrics["seed"],
                         **{name: metrics[name] for name in report.METRIC_COLUMNS},
                     }
@@ -237,10 +245,10 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
-        out = run(args)
+        out = run_experiment(args)
     except UsageError as error:
         return usage_failure(error)
-    except train.Interrupted as interrupted:
+    except Interrupted as interrupted:
         print(f"interrupted in {interrupted}; the same command continues the experiment", file=sys.stderr)
         return 130
     print(f"report: {out / report.REPORT_FILE}")

@@ -67,6 +67,11 @@ class Actor(nn.Module):
         return loc, log_scale
 
 
+def actor_log_scale(actor_params: dict) -> jax.Array:
+    """The actor's state-independent log-scale [action_size], read from its parameters."""
+    return actor_params["params"]["log_std"]
+
+
 class Critic(nn.Module):
     """obs [..., obs_size] -> value [...]."""
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable
 
@@ -11,9 +10,9 @@ import jax.numpy as jnp
 from flax import serialization
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import Config
 from rpo_jax.networks import policy_distribution
-
-PARAMS_FILE = "params.msgpack"
+from rpo_jax.rundir import RunDir
 
 
 def load_policy(run_dir: str | Path, run: int = 0) -> Callable[..., jax.Array]:
@@ -24,13 +23,13 @@ def load_policy(run_dir: str | Path, run: int = 0) -> Callable[..., jax.Array]:
     when `deterministic`; for Gumbel and Laplace policies, the location) and clipped to the
     environment's bounds, as the environment would. `run` indexes the runs (seeds x sweep
     points) trained together, as listed in config.json."""
-    run_dir = Path(run_dir)
-    saved_run = json.loads((run_dir / "config.json").read_text())
-    config = ppo.Config(**{**saved_run["config"], "hidden_sizes": tuple(saved_run["config"]["hidden_sizes"])})
+    directory = RunDir(Path(run_dir))
+    saved_run = directory.read_config()
+    config = Config.from_dict(saved_run["config"])
     spec = saved_run["env_spec"]
     if not 0 <= run < len(saved_run["runs"]):
         raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")
-    saved = serialization.msgpack_restore((run_dir / PARAMS_FILE).read_bytes())
+    saved = serialization.msgpack_restore(directory.read_params())
     actor_params = jax.tree.map(lambda x: jnp.asarray(x[run]), saved["params"]["actor"])
     stats = envs.RunningMeanStd(**{k: jnp.asarray(v[run]) for k, v in saved["obs_stats"].items()})
     actor, _ = ppo.make_networks(config, spec["action_size"])

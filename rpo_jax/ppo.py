@@ -1,8 +1,13 @@
-"""PPO and RPO as one jittable training function.
+"""PPO and RPO as one jittable training function, built from module-level pieces.
 
     train = make_train(config, env)          # env: a single environment, see rpo_jax.envs
     state, metrics = jax.jit(train)(key)     # metrics: one scalar per update per field
     jax.jit(jax.vmap(train))(keys)           # several seeds in one program
+
+One update is `rollout` (the environments stepped by the current policy), `make_batch` (values,
+GAE and the flattened batch), `minibatch_epochs` (shuffled passes over the batch) and, for each
+minibatch, `gradient_step`: the one place where gradients are taken and the optimiser steps,
+and so where a cross-device all-reduce belongs.
 
 RPO differs from PPO in one line of `ppo_loss`: during the update the policy's location is
 perturbed by U(-rpo_alpha, rpo_alpha) noise (`networks.perturb_location`). Rollouts sample from
@@ -21,145 +26,15 @@ import optax
 from flax import struct
 
 from rpo_jax import envs
-from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, Actor, Critic, perturb_location, policy_distribution
-
-
-@dataclasses.dataclass(frozen=True)
-class Config:
-    """Hyperparameters of one training run. The defaults are a CPU-sized Cartpole run."""
-
-    total_timesteps: int = 1_000_000
-    """environment steps per run over all parallel environments (rounded down to whole batches)"""
-    num_envs: int = 64
-    """parallel environments in the rollout"""
-    num_steps: int = 32
-    """rollout length per environment and update"""
-    num_minibatches: int = 4
-    """minibatches per epoch; the batch is num_envs * num_steps samples"""
-    update_epochs: int = 4
-    """passes over the batch per update"""
-    lr: float = 1e-3
-    """Adam learning rate (the start value for the linear and adaptive schedules)"""
-    lr_schedule: str = "linear"
-    """'linear' (annealed to 0), 'constant', or 'adaptive' (rl_games: x/÷1.5 to keep KL near kl_target)"""
-    kl_target: float = 0.008
-    """target approx-KL per minibatch for the adaptive schedule"""
-    gamma: float = 0.99
-    """discount factor"""
-    gae_lambda: float = 0.95
-    """GAE lambda"""
-    clip_coef: float = 0.2
-    """PPO ratio clip, also used to clip the value loss"""
-    clip_value_loss: bool = True
-    """clip the value update around the rollout's value estimate"""
-    vf_coef: float = 0.5
-    """value-loss coefficient"""
-    ent_coef: float = 0.0
-    """entropy-bonus coefficient"""
-    max_grad_norm: float = 0.5
-    """global-norm gradient clip"""
-    adam_eps: float = 1e-5
-    """Adam epsilon"""
-    norm_adv: bool = True
-    """normalise advantages per minibatch"""
-    rpo_alpha: float = 0.0
-    """RPO: half-width of the uniform perturbation of the policy location; 0 is PPO"""
-    dist: str = "gaussian"
-    """action distribution: gaussian, laplace or gumbel (state-dependent location, free log-scale)"""
-    augmentation: str = "none"
-    """'none', 'rad' (train on amplitude-scaled observations) or 'drac' (regularise towards them)"""
-    aug_low: float = 0.6
-    """lower bound of the amplitude-scaling factor of RAD and DrAC"""
-    aug_high: float = 1.2
-    """upper bound of the amplitude-scaling factor of RAD and DrAC"""
-    drac_coef: float = 0.1
-    """weight of DrAC's policy-KL and value regularisers"""
-    hidden_sizes: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of both the actor and the critic"""
-    activation: str = "tanh"
-    """hidden activation: tanh, relu, elu or silu"""
-    normalize_obs: bool = True
-    """normalise observations by running statistics"""
-    obs_clip: float = 10.0
-    """clip of normalised observations"""
-    normalize_reward: bool = True
-    """divide rewards by the running std of the discounted return"""
-    reward_clip: float = 10.0
-    """clip of normalised rewards"""
-    reward_scale: float = 1.0
-    """constant factor applied to rewards before normalisation"""
-    normalize_value: bool = False
-    """the critic predicts returns standardised by their running mean and std (rl_games' value normalisation)"""
-
-    @property
-    def batch_size(self) -> int:
-        return self.num_envs * self.num_steps
-
-    @property
-    def minibatch_size(self) -> int:
-        return self.batch_size // self.num_minibatches
-
-    @property
-    def num_updates(self) -> int:
-        return self.total_timesteps // self.batch_size
-
-    def validate(self) -> "Config":
-        """Raises ValueError naming the first invalid field and what is allowed."""
-        for name in ("total_timesteps", "num_envs", "num_steps", "num_minibatches", "update_epochs"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)}")
-        for name in ("lr", "clip_coef", "max_grad_norm", "adam_eps", "obs_clip", "reward_clip", "kl_target"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
-        for name in ("rpo_alpha", "ent_coef", "vf_coef", "drac_coef"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not self.reward_scale > 0:
-            raise ValueError(f"reward_scale must be > 0, got {self.reward_scale}")
-        if self.batch_size % self.num_minibatches:
-            raise ValueError(
-                f"num_minibatches must divide num_envs * num_steps = {self.batch_size}, "
-                f"got {self.num_minibatches}"
-            )
-        if self.minibatch_size < 2:
-            raise ValueError(
-                f"num_minibatches must leave at least 2 samples per minibatch, got "
-                f"{self.num_minibatches} minibatches of a batch of {self.batch_size}"
-            )
-        if self.total_timesteps < self.batch_size:
-            raise ValueError(
-                f"total_timesteps must be at least one batch (num_envs * num_steps = "
-                f"{self.batch_size}), got {self.total_timesteps}"
-            )
-        if not self.hidden_sizes or min(self.hidden_sizes) <= 0:
-            raise ValueError(f"hidden_sizes must be positive integers, got {self.hidden_sizes}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
-        if self.dist not in DISTRIBUTIONS:
-            raise ValueError(f"dist must be one of {', '.join(DISTRIBUTIONS)}, got {self.dist!r}")
-        if self.augmentation not in AUGMENTATIONS:
-            raise ValueError(f"augmentation must be one of {', '.join(AUGMENTATIONS)}, got {self.augmentation!r}")
-        if not 0 < self.aug_low <= self.aug_high:
-            raise ValueError(
-                f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {self.aug_low}, {self.aug_high}"
-            )
-        return self
-
-
-LR_SCHEDULES = ("linear", "constant", "adaptive")
-AUGMENTATIONS = ("none", "rad", "drac")
+from rpo_jax.config import SWEEPABLE, Config
+from rpo_jax.networks import Actor, Critic, actor_log_scale, perturb_location, policy_distribution
 
 
 @struct.dataclass
 class Hyperparams:
-    """The continuous hyperparameters a sweep may vary. They live in the training state as
-    arrays, so `jax.vmap` over a batch of them (and of keys) trains a whole grid in one
-    program. Each leaf is [] for one run, [R] for a batch of runs."""
+    """The sweepable hyperparameters (`config.SWEEPABLE`) as arrays in the training state, so
+    that `jax.vmap` over a batch of them (and of keys) trains a whole grid in one program.
+    Each leaf is [] for one run, [R] for a batch of runs."""
 
     rpo_alpha: jax.Array
     ent_coef: jax.Array
@@ -167,41 +42,9 @@ class Hyperparams:
     drac_coef: jax.Array
 
     @classmethod
-    def from_config(cls, config: "Config") -> "Hyperparams":
-        return cls(*(jnp.asarray(getattr(config, name), jnp.float32) for name in SWEEPABLE))
-
-
-SWEEPABLE = tuple(Hyperparams.__dataclass_fields__)
-
-PRESETS: dict[str, Config] = {
-    # CleanRL's ppo_continuous_action / rpo_continuous_action, as in the paper.
-    "paper": Config(
-        total_timesteps=8_000_000, num_envs=1, num_steps=2048, num_minibatches=32,
-        update_epochs=10, lr=3e-4, lr_schedule="linear", vf_coef=0.5, max_grad_norm=0.5,
-    ),
-    # rl_games' IsaacGym Cartpole config. Kept: sizes, ELU [32, 32], KL-adaptive lr, value
-    # coefficient 4 (rl_games halves its squared error too), grad norm 1, reward scale 0.1,
-    # observation normalisation with the task's +-5 clip. rl_games' value normalisation is
-    # `normalize_value`, left off here so that the Cartpole results stay comparable; its shared
-    # actor-critic trunk is not reproduced (rpo_jax keeps them separate).
-    "isaacgym": Config(
-        total_timesteps=819_200, num_envs=512, num_steps=16, num_minibatches=1,
-        update_epochs=8, lr=3e-4, lr_schedule="adaptive", kl_target=0.008, vf_coef=4.0,
-        max_grad_norm=1.0, hidden_sizes=(32, 32), activation="elu", normalize_reward=False,
-        reward_scale=0.1, obs_clip=5.0,
-    ),
-}  # fmt: skip
-# rl_games' IsaacGym BallBalance config: Cartpole's with an MLP [128, 64, 32], 4096 environments
-# in minibatches of 8192 and value normalisation (without it BallBalance plateaus near 245, see
-# benchmarks/RESULTS.md), for its 250 updates (16M steps).
-PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
-    PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
-    hidden_sizes=(128, 64, 32), normalize_value=True,
-)  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------
-# The maths
+    def from_config(cls, config: Config) -> "Hyperparams":
+        values = config.hyperparameters()
+        return cls(**{name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE})
 
 
 def compute_gae(
@@ -264,6 +107,21 @@ def amplitude_scale(obs: jax.Array, key: jax.Array, low: float, high: float) -> 
     return obs * jax.random.uniform(key, obs.shape, obs.dtype, minval=low, maxval=high)
 
 
+def drac_regulariser(
+    params: dict, actor: Actor, critic: Critic, augmented: jax.Array, loc: jax.Array, log_scale: jax.Array,
+    values: jax.Array, dist: str,
+) -> jax.Array:  # fmt: skip
+    """DrAC's KL(pi(.|s) || pi(.|f(s))) + (V(s) - V(f(s)))^2 on augmented observations f(s) [B, obs].
+
+    The outputs on the original observation (loc, log_scale, values) are held fixed, and those
+    on the augmented one move towards them."""
+    aug_loc, aug_log_scale = actor.apply(params["actor"], augmented)
+    target = policy_distribution(*jax.lax.stop_gradient((loc, log_scale)), dist)
+    policy_regulariser = target.kl_divergence(policy_distribution(aug_loc, aug_log_scale, dist)).mean()
+    value_regulariser = ((jax.lax.stop_gradient(values) - critic.apply(params["critic"], augmented)) ** 2).mean()
+    return policy_regulariser + value_regulariser
+
+
 def ppo_loss(
     params: dict,
     actor: Actor,
@@ -313,13 +171,7 @@ def ppo_loss(
     loss = policy_loss - hparams.ent_coef * entropy + config.vf_coef * value_loss
     if config.augmentation == "drac":
         augmented = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
-        aug_loc, aug_log_scale = actor.apply(params["actor"], augmented)
-        # DrAC holds the outputs on the original observation fixed and moves those on the
-        # augmented one towards them.
-        target = policy_distribution(*jax.lax.stop_gradient((loc, log_scale)), config.dist)
-        policy_regulariser = target.kl_divergence(policy_distribution(aug_loc, aug_log_scale, config.dist)).mean()
-        value_regulariser = ((jax.lax.stop_gradient(values) - critic.apply(params["critic"], augmented)) ** 2).mean()
-        loss = loss + hparams.drac_coef * (policy_regulariser + value_regulariser)
+        loss = loss + hparams.drac_coef * drac_regulariser(params, actor, critic, augmented, loc, log_scale, values, config.dist)
     metrics = LossMetrics(
         policy_loss=policy_loss,
         value_loss=value_loss,
@@ -328,6 +180,8 @@ def ppo_loss(
         clip_fraction=(jnp.abs(ratio - 1) > config.clip_coef).mean(),
     )
     return loss, metrics
+
+
 
 
 # --------------------------------------------------------------------------------------------
@@ -367,6 +221,8 @@ class Metrics:
 
 @struct.dataclass
 class Transition:
+    """One rollout step of every environment; a leading [T] axis after the rollout."""
+
     obs: jax.Array
     final_obs: jax.Array
     action: jax.Array
@@ -378,10 +234,10 @@ class Transition:
     episode_length: jax.Array
 
 
-def wrap_for_training(env: envs.Env, config: Config) -> envs.Env:
-    """The batched environment the trainer steps: `env` itself if it is already batched (an
-    `envs.BatchedEnv`), else `config.num_envs` vmapped copies. The observation normaliser is
-    outermost so that its statistics sit at `env_state.obs_stats`, where saved policies read them."""
+def wrap_for_training(env: envs.Env, config: Config) -> envs.NormalizeObservation:
+    """The batched environment the trainer steps: `env` itself if it is already batched, else
+    `config.num_envs` auto-resetting copies, under the episode statistics, action clipping and
+    the reward and observation normalisers."""
     if not isinstance(env, envs.BatchedEnv):
         env = envs.vectorize(env, config.num_envs)
     elif env.num_envs != config.num_envs:
@@ -416,68 +272,137 @@ def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
 
 @dataclasses.dataclass(frozen=True)
 class Trainer:
-    """`init(key)` builds the state; `run(state, n)` does n updates in one `lax.scan`.
+    """The static parts of one training run, and its pure, jittable entry points.
 
-    Both are pure and jittable. A long run calls one compiled `run` chunk repeatedly (all
-    chunks the same length, so it compiles once) to report progress between chunks.
-    `restart_episodes(state)` replaces the episodes in flight by fresh ones and keeps the rest
-    (see there)."""
+    `init(key, hparams=None)` builds the state; `update(state)` is one update;
+    `scan_updates(state, n)` does n updates in one `lax.scan`. A long run calls one compiled
+    chunk of updates repeatedly (all chunks the same length, so it compiles once) to report
+    progress between chunks.
+    `restart_episodes(state)` replaces the episodes in flight by fresh ones and keeps the rest."""
 
     config: Config
-    init: Callable[..., TrainState]
-    update: Callable[[TrainState], tuple[TrainState, Metrics]]
-    restart_episodes: Callable[[TrainState], TrainState]
+    env: envs.NormalizeObservation  # the wrapped, batched environment that training steps
+    actor: Actor
+    critic: Critic
+    optimizer: optax.GradientTransformation
 
-    def run(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
+    def init(self, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
+        return init_state(self, key, hparams)
+
+    def update(self, state: TrainState) -> tuple[TrainState, Metrics]:
+        return update(self, state)
+
+    def scan_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
         return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
+
+    def restart_episodes(self, state: TrainState) -> TrainState:
+        """`state` with a fresh episode in every environment; parameters, optimiser, counters
+        and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
+        whose state lives outside JAX and so in no checkpoint."""
+        key, reset_key = jax.random.split(state.key)
+        env_state, ts = self.env.restart(state.env_state, reset_key)
+        return state.replace(env_state=env_state, obs=ts.obs, key=key)
+
+    def observation_statistics(self, state: TrainState) -> envs.RunningMeanStd:
+        """The observation normaliser's statistics, which a saved policy needs."""
+        return self.env.statistics(state.env_state)
 
 
 def make_trainer(config: Config, env: envs.Env) -> Trainer:
     config.validate()
-    spec = env.spec
-    train_env = wrap_for_training(env, config)
-    actor, critic = make_networks(config, spec.action_size)
-    optimizer = make_optimizer(config)
-    num_updates = config.num_updates
+    actor, critic = make_networks(config, env.spec.action_size)
+    return Trainer(config, wrap_for_training(env, config), actor, critic, make_optimizer(config))
 
-    def init(key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
-        hparams = Hyperparams.from_config(config) if hparams is None else hparams
-        key, actor_key, critic_key, env_key = jax.random.split(key, 4)
-        dummy_obs = jnp.zeros((spec.observation_size,))
-        params = {"actor": actor.init(actor_key, dummy_obs), "critic": critic.init(critic_key, dummy_obs)}
-        env_state, ts = train_env.reset(env_key)
-        zero = jnp.zeros(())
-        opt_state = set_learning_rate(optimizer.init(params), hparams.lr)
-        return TrainState(
-            params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
-            envs.RunningMeanStd.zeros(()), zero, zero,
-        )  # fmt: skip
 
-    def rollout_step(params, carry, key):
+def init_state(trainer: Trainer, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
+    config, spec = trainer.config, trainer.env.spec
+    hparams = Hyperparams.from_config(config) if hparams is None else hparams
+    key, actor_key, critic_key, env_key = jax.random.split(key, 4)
+    dummy_obs = jnp.zeros((spec.observation_size,))
+    params = {"actor": trainer.actor.init(actor_key, dummy_obs), "critic": trainer.critic.init(critic_key, dummy_obs)}
+    env_state, ts = trainer.env.reset(env_key)
+    zero = jnp.zeros(())
+    opt_state = set_learning_rate(trainer.optimizer.init(params), hparams.lr)
+    return TrainState(
+        params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
+        envs.RunningMeanStd.zeros(()), zero, zero,
+    )  # fmt: skip
+
+
+def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key: jax.Array) -> tuple[Any, jax.Array, Transition]:
+    """`num_steps` steps of every environment under the unperturbed policy. Returns the
+    environments' state and observation after them, and the transitions [T, N]."""
+
+    def step(params, carry, key):
         env_state, obs = carry
-        loc, log_scale = actor.apply(params["actor"], obs)
-        action, log_prob = policy_distribution(loc, log_scale, config.dist).sample_and_log_prob(seed=key)
-        env_state, ts = train_env.step(env_state, action)
+        loc, log_scale = trainer.actor.apply(params["actor"], obs)
+        action, log_prob = policy_distribution(loc, log_scale, trainer.config.dist).sample_and_log_prob(seed=key)
+        env_state, ts = trainer.env.step(env_state, action)
         transition = Transition(
             obs, ts.final_obs, action, log_prob, ts.reward, ts.terminated, ts.truncated,
             ts.info["episode_return"], ts.info["episode_length"],
         )  # fmt: skip
         return (env_state, ts.obs), transition
 
-    def minibatch_step(hparams, carry, inputs):
+    keys = jax.random.split(key, trainer.config.num_steps)
+    (env_state, obs), traj = jax.lax.scan(functools.partial(step, params), (env_state, obs), keys)
+    return env_state, obs, traj
+
+
+def make_batch(
+    trainer: Trainer, params: dict, traj: Transition, value_stats: envs.RunningMeanStd
+) -> tuple[Batch, envs.RunningMeanStd]:
+    """Values, GAE and the batch [B = T * N] of one rollout; with `normalize_value`, the
+    critic's targets on the scale of return statistics updated with this rollout's returns."""
+    config, critic = trainer.config, trainer.critic
+    # Values in two large batched calls after the rollout rather than one per step.
+    values = critic.apply(params["critic"], traj.obs)
+    next_values = critic.apply(params["critic"], traj.final_obs)
+    if config.normalize_value:
+        values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
+    advantages, returns = compute_gae(
+        traj.reward, values, next_values, traj.terminated, traj.truncated, config.gamma, config.gae_lambda
+    )
+    if config.normalize_value:
+        # The critic learns the new returns on the scale of statistics that include them.
+        value_stats = value_stats.update(returns.reshape(-1))
+        values, returns = value_stats.standardize(values), value_stats.standardize(returns)
+    batch = jax.tree.map(
+        lambda x: x.reshape(config.batch_size, *x.shape[2:]),
+        Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
+    )
+    return batch, value_stats
+
+
+def gradient_step(
+    trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
+) -> tuple[dict, Any, LossMetrics]:
+    """One optimiser step on one minibatch, and the adaptive learning rate's adjustment."""
+    config = trainer.config
+    grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, trainer.actor, trainer.critic, batch, key, config, hparams)
+    updates, opt_state = trainer.optimizer.update(grads, opt_state, params)
+    params = optax.apply_updates(params, updates)
+    if config.lr_schedule == "adaptive":
+        lr = opt_state.hyperparams["learning_rate"]
+        lr = jnp.where(metrics.approx_kl > 2 * config.kl_target, jnp.maximum(lr / 1.5, 1e-6), lr)
+        lr = jnp.where(metrics.approx_kl < 0.5 * config.kl_target, jnp.minimum(lr * 1.5, 1e-2), lr)
+        opt_state = set_learning_rate(opt_state, lr)
+    return params, opt_state, metrics
+
+
+def minibatch_epochs(
+    trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
+) -> tuple[dict, Any, LossMetrics]:
+    """`update_epochs` passes over `batch`, each in `num_minibatches` shuffled minibatches.
+    Returns the parameters, the optimiser state and the loss metrics [epochs, minibatches]."""
+    config = trainer.config
+
+    def minibatch(carry, inputs):
         params, opt_state = carry
-        batch, loss_key = inputs
-        grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, actor, critic, batch, loss_key, config, hparams)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
-        if config.lr_schedule == "adaptive":
-            lr = opt_state.hyperparams["learning_rate"]
-            lr = jnp.where(metrics.approx_kl > 2 * config.kl_target, jnp.maximum(lr / 1.5, 1e-6), lr)
-            lr = jnp.where(metrics.approx_kl < 0.5 * config.kl_target, jnp.minimum(lr * 1.5, 1e-2), lr)
-            opt_state = set_learning_rate(opt_state, lr)
+        params, opt_state, metrics = gradient_step(trainer, hparams, params, opt_state, *inputs)
         return (params, opt_state), metrics
 
-    def epoch(hparams, carry, key):
+    def epoch(carry, key):
         batch, params, opt_state = carry
         permute_key, loss_key = jax.random.split(key)
         permutation = jax.random.permutation(permute_key, config.batch_size)
@@ -486,79 +411,54 @@ def make_trainer(config: Config, env: envs.Env) -> Trainer:
             batch,
         )
         loss_keys = jax.random.split(loss_key, config.num_minibatches)
-        (params, opt_state), metrics = jax.lax.scan(
-            functools.partial(minibatch_step, hparams), (params, opt_state), (minibatches, loss_keys)
-        )
+        (params, opt_state), metrics = jax.lax.scan(minibatch, (params, opt_state), (minibatches, loss_keys))
         return (batch, params, opt_state), metrics
 
-    def update(state: TrainState) -> tuple[TrainState, Metrics]:
-        key, rollout_key, epochs_key = jax.random.split(state.key, 3)
-        opt_state = state.opt_state
-        if config.lr_schedule == "linear":
-            opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / num_updates))
-        learning_rate = opt_state.hyperparams["learning_rate"]
+    keys = jax.random.split(key, config.update_epochs)
+    (_, params, opt_state), metrics = jax.lax.scan(epoch, (batch, params, opt_state), keys)
+    return params, opt_state, metrics
 
-        params = state.params
-        (env_state, obs), traj = jax.lax.scan(
-            functools.partial(rollout_step, params),
-            (state.env_state, state.obs),
-            jax.random.split(rollout_key, config.num_steps),
-        )
-        # Values in two large batched calls after the rollout rather than one per step.
-        values = critic.apply(params["critic"], traj.obs)
-        next_values = critic.apply(params["critic"], traj.final_obs)
-        value_stats = state.value_stats
-        if config.normalize_value:
-            values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
-        advantages, returns = compute_gae(
-            traj.reward, values, next_values, traj.terminated, traj.truncated, config.gamma, config.gae_lambda
-        )
-        if config.normalize_value:
-            # The critic learns the new returns on the scale of statistics that include them.
-            value_stats = value_stats.update(returns.reshape(-1))
-            values, returns = value_stats.standardize(values), value_stats.standardize(returns)
-        batch = jax.tree.map(
-            lambda x: x.reshape(config.batch_size, *x.shape[2:]),
-            Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
-        )
-        (_, params, opt_state), loss_metrics = jax.lax.scan(
-            functools.partial(epoch, state.hparams),
-            (batch, params, opt_state),
-            jax.random.split(epochs_key, config.update_epochs),
-        )
 
-        done = traj.terminated | traj.truncated
-        finished = done.sum()
-        any_finished = finished > 0
-        episode_return = jnp.where(any_finished, traj.episode_return.sum() / jnp.maximum(finished, 1), state.last_episode_return)
-        episode_length = jnp.where(
-            any_finished, traj.episode_length.sum() / jnp.maximum(finished, 1), state.last_episode_length
-        )
-        update_count = state.update + 1
-        metrics = Metrics(
-            env_steps=update_count * config.batch_size,
-            episode_return=episode_return,
-            episode_length=episode_length,
-            episodes_finished=finished,
-            action_std=jnp.exp(params["actor"]["params"]["log_std"]).mean(),
-            learning_rate=learning_rate,
-            **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
-        )
-        new_state = TrainState(
-            params, opt_state, env_state, obs, key, update_count, state.hparams, value_stats,
-            episode_return, episode_length,
-        )  # fmt: skip
-        return new_state, metrics
+def update(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics]:
+    """One update: a rollout, its batch, and the minibatch epochs."""
+    config = trainer.config
+    key, rollout_key, epochs_key = jax.random.split(state.key, 3)
+    opt_state = state.opt_state
+    if config.lr_schedule == "linear":
+        opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / config.num_updates))
+    learning_rate = opt_state.hyperparams["learning_rate"]
 
-    def restart_episodes(state: TrainState) -> TrainState:
-        """`state` with a fresh episode in every environment; parameters, optimiser, counters
-        and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
-        whose state lives outside JAX and so in no checkpoint."""
-        key, reset_key = jax.random.split(state.key)
-        env_state, ts = train_env.restart(state.env_state, reset_key)
-        return state.replace(env_state=env_state, obs=ts.obs, key=key)
+    env_state, obs, traj = rollout(trainer, state.params, state.env_state, state.obs, rollout_key)
+    batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
+    params, opt_state, loss_metrics = minibatch_epochs(trainer, state.hparams, state.params, opt_state, batch, epochs_key)
 
-    return Trainer(config, init, update, restart_episodes)
+    episode_return, episode_length, finished = finished_episodes(traj, state)
+    update_count = state.update + 1
+    metrics = Metrics(
+        env_steps=update_count * config.batch_size,
+        episode_return=episode_return,
+        episode_length=episode_length,
+        episodes_finished=finished,
+        action_std=jnp.exp(actor_log_scale(params["actor"])).mean(),
+        learning_rate=learning_rate,
+        **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
+    )
+    new_state = TrainState(
+        params, opt_state, env_state, obs, key, update_count, state.hparams, value_stats,
+        episode_return, episode_length,
+    )  # fmt: skip
+    return new_state, metrics
+
+
+def finished_episodes(traj: Transition, state: TrainState) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Mean return and length of the episodes that ended in this rollout (the previous
+    update's where none did), and how many ended."""
+    finished = (traj.terminated | traj.truncated).sum()
+    any_finished = finished > 0
+    denominator = jnp.maximum(finished, 1)
+    episode_return = jnp.where(any_finished, traj.episode_return.sum() / denominator, state.last_episode_return)
+    episode_length = jnp.where(any_finished, traj.episode_length.sum() / denominator, state.last_episode_length)
+    return episode_return, episode_length, finished
 
 
 def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
@@ -568,6 +468,6 @@ def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState,
     trainer = make_trainer(config, env)
 
     def train(key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
-        return trainer.run(trainer.init(key, hparams), config.num_updates)
+        return trainer.scan_updates(trainer.init(key, hparams), config.num_updates)
 
     return train

@@ -21,7 +21,10 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from rpo_jax.cli import ArgumentParser, UsageError, usage_failure, write_text
+from rpo_jax.cli import ArgumentParser
+from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.files import write_text
+from rpo_jax.scores import kept_fraction, tail_mean
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -70,21 +73,6 @@ def read_results(directory: Path) -> list[dict]:
             if name not in TEXT_COLUMNS:
                 row[name] = float(row[name])
     return rows
-
-
-def tail_mean(values: Sequence[float]) -> float:
-    """Mean over the last 10% of logged updates (at least one): a run's final return or entropy."""
-    tail = max(1, math.ceil(len(values) / 10))
-    return float(np.mean(values[-tail:]))
-
-
-def kept_fraction(values: Sequence[float]) -> float:
-    """The last window of 10% of the logged updates (at least one) as a fraction of the best
-    such window: 1 for a curve that never fell back, NaN where the best window is not positive."""
-    window = max(1, math.ceil(len(values) / 10))
-    windows = np.convolve(values, np.ones(window) / window, mode="valid")
-    best = windows.max()
-    return float(windows[-1] / best) if best > 0 else math.nan
 
 
 def unique(values: Iterable[str]) -> list[str]:
@@ -168,32 +156,41 @@ def write_figures(rows: Sequence[dict], scores: dict, figures: Path) -> list[str
     palette = plt.get_cmap("tab10" if len(variants) <= 10 else "tab20")
     colours = {variant: palette(i % palette.N) for i, variant in enumerate(variants)}
     runs = group_runs(rows)
-    written = []
-    for env in unique(row["env"] for row in rows):
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-        for variant in variants:
-            seeds = runs.get((env, variant))
-            if not seeds:
-                continue
-            length = min(len(run) for run in seeds.values())
-            steps = np.array([row["env_steps"] for row in next(iter(seeds.values()))[:length]])
-            for axis, metric in zip(axes, ("episode_return", "policy_entropy")):
-                values = np.array([[row[metric] for row in run[:length]] for run in seeds.values()])
-                mean, std = values.mean(axis=0), values.std(axis=0)
-                axis.plot(steps, mean, color=colours[variant], label=variant, linewidth=1.5)
-                axis.fill_between(steps, mean - std, mean + std, color=colours[variant], alpha=0.2, linewidth=0)
-        for axis, label in zip(axes, ("episode return", "policy entropy (sum over action dimensions)")):
-            axis.set_xlabel("environment steps")
-            axis.set_ylabel(label)
-            axis.grid(alpha=0.3)
-        axes[0].legend(fontsize=8, loc="best")
-        fig.suptitle(f"{env}: mean ± std over seeds")
-        fig.tight_layout()
-        name = f"{_slug(env)}-curves.png"
-        fig.savefig(figures / name, dpi=110)
-        plt.close(fig)
-        written.append(name)
+    written = [_write_curves(plt, env, runs, variants, colours, figures) for env in unique(row["env"] for row in rows)]
+    written.append(_write_scores(plt, scores, variants, colours, figures / "normalized-scores.png"))
+    written.append(write_perturbed_gaussian_figure(figures / "perturbed-gaussian.png"))
+    return written
 
+
+def _write_curves(plt, env: str, runs: dict, variants: list[str], colours: dict, figures: Path) -> str:
+    """Return and entropy against steps for every variant on `env`: mean and std over seeds."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for variant in variants:
+        seeds = runs.get((env, variant))
+        if not seeds:
+            continue
+        length = min(len(run) for run in seeds.values())
+        steps = np.array([row["env_steps"] for row in next(iter(seeds.values()))[:length]])
+        for axis, metric in zip(axes, ("episode_return", "policy_entropy")):
+            values = np.array([[row[metric] for row in run[:length]] for run in seeds.values()])
+            mean, std = values.mean(axis=0), values.std(axis=0)
+            axis.plot(steps, mean, color=colours[variant], label=variant, linewidth=1.5)
+            axis.fill_between(steps, mean - std, mean + std, color=colours[variant], alpha=0.2, linewidth=0)
+    for axis, label in zip(axes, ("episode return", "policy entropy (sum over action dimensions)")):
+        axis.set_xlabel("environment steps")
+        axis.set_ylabel(label)
+        axis.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="best")
+    fig.suptitle(f"{env}: mean ± std over seeds")
+    fig.tight_layout()
+    name = f"{_slug(env)}-curves.png"
+    fig.savefig(figures / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def _write_scores(plt, scores: dict, variants: list[str], colours: dict, path: Path) -> str:
+    """The bar chart of normalised scores, mean over environments."""
     mean_scores = {variant: np.mean([s for (e, v), s in scores.items() if v == variant]) for variant in variants}
     fig, axis = plt.subplots(figsize=(max(5, 0.9 * len(variants) + 2), 4))
     axis.bar(range(len(variants)), [mean_scores[v] for v in variants], color=[colours[v] for v in variants])
@@ -202,12 +199,9 @@ def write_figures(rows: Sequence[dict], scores: dict, figures: Path) -> list[str
     axis.set_title("Normalised final return")
     axis.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(figures / "normalized-scores.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    written.append("normalized-scores.png")
-
-    written.append(write_perturbed_gaussian_figure(figures / "perturbed-gaussian.png"))
-    return written
+    return path.name
 
 
 def write_perturbed_gaussian_figure(path: Path, samples: int = 1_000_000, alpha: float = 3.0) -> str:
@@ -249,9 +243,32 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     envs = unique(row["env"] for row in rows)
     variants = unique(row["variant"] for row in rows)
     figures = write_figures(rows, scores, out / FIGURES_DIR) if rows else []
+    experiments = unique(row["experiment"] for row in rows)
+    seeds = sorted({s["seeds"] for s in summary.values()})
+    steps = sorted({s["env_steps"] for s in summary.values()})
+    lines = [
+        f"# Report: {', '.join(experiments) or 'no finished runs'}",
+        "",
+        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
+        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
+        f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
+        "",
+        *_result_tables(summary, envs, variants),
+        *_score_table(scores, envs, variants),
+        "",
+        *(f"![{name}]({FIGURES_DIR}/{name})" for name in figures),
+        "",
+    ]
+    write_text(out / REPORT_FILE, "\n".join(lines))
+    return out / REPORT_FILE
 
-    best_return = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["return_mean"]) for env in envs}
-    best_entropy = {env: max((v for e, v in summary if e == env), key=lambda v: summary[env, v]["entropy_mean"]) for env in envs}
+
+def _best(summary: dict, cells: dict, env: str, field: str) -> str | None:
+    return max((v for e, v in cells if e == env), key=lambda v: summary[env, v][field], default=None)
+
+
+def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """The final return, final entropy and late-training tables with their explanations."""
     returns = {
         key: _with_spread(f"{s['return_mean']:.2f}", f" ± {s['return_std']:.2f}", s["seeds"]) for key, s in summary.items()
     }
@@ -264,31 +281,19 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         for key, s in summary.items()
         if not math.isnan(s["kept"])
     }
-    best_kept = {
-        env: max((v for e, v in kept if e == env), key=lambda v: summary[env, v]["kept"], default=None) for env in envs
-    }
-    experiments = unique(row["experiment"] for row in rows)
-    seeds = sorted({s["seeds"] for s in summary.values()})
-    steps = sorted({s["env_steps"] for s in summary.values()})
-    lines = [
-        f"# Report: {', '.join(experiments) or 'no finished runs'}",
-        "",
-        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
-        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
-        f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
-        "",
+    return [
         "## Final return",
         "",
         "Mean ± std over seeds of the episode return averaged over the last 10% of logged updates "
         "(the value alone where a variant has one seed); the best variant of each environment in bold.",
         "",
-        *_table(envs, variants, returns, best_return),
+        *_table(envs, variants, returns, {env: _best(summary, summary, env, "return_mean") for env in envs}),
         "",
         "## Final policy entropy",
         "",
         "Entropy of the policy summed over action dimensions, averaged the same way; the highest in bold.",
         "",
-        *_table(envs, variants, entropies, best_entropy),
+        *_table(envs, variants, entropies, {env: _best(summary, summary, env, "entropy_mean") for env in envs}),
         "",
         "## Late training",
         "",
@@ -297,8 +302,13 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         "worst seed. 1.000 means the return never fell back from its best; blank where the best "
         "window is not positive.",
         "",
-        *_table(envs, variants, kept, best_kept),
+        *_table(envs, variants, kept, {env: _best(summary, kept, env, "kept") for env in envs}),
         "",
+    ]
+
+
+def _score_table(scores: dict, envs: list[str], variants: list[str]) -> list[str]:
+    lines = [
         "## Normalised score",
         "",
         NORMALISATION_RULE,
@@ -311,9 +321,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
         known = [score for score in per_env if score is not None]
         cells = ["" if score is None else f"{score:.3f}" for score in per_env]
         lines.append(f"| {variant} | {np.mean(known):.3f} | " + " | ".join(cells) + " |")
-    lines += ["", *(f"![{name}]({FIGURES_DIR}/{name})" for name in figures), ""]
-    write_text(out / REPORT_FILE, "\n".join(lines))
-    return out / REPORT_FILE
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:

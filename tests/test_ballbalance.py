@@ -15,9 +15,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from rpo_jax.envs import ballbalance as bb
+from rpo_jax.config import PRESETS
 from rpo_jax.envs import VectorEnv, make_env
-from rpo_jax.ppo import PRESETS, make_train
+from rpo_jax.envs import ballbalance as bb
+from rpo_jax.ppo import make_train
 
 GRAVITY = 9.81
 REST_HEIGHT = bb.TRAY_HEIGHT + bb.TRAY_HALF_THICKNESS + bb.BALL_RADIUS  # ball centre on the tray

@@ -4,6 +4,7 @@ import jax
 import numpy as np
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import Config
 
 
 def test_brax_inverted_pendulum_trains_through_the_protocol():
@@ -11,7 +12,7 @@ def test_brax_inverted_pendulum_trains_through_the_protocol():
     assert env.spec.name == "brax/inverted_pendulum" and env.spec.max_episode_steps == 1000
     assert (env.spec.observation_size, env.spec.action_size) == (4, 1)
 
-    config = ppo.Config(num_envs=16, num_steps=32, num_minibatches=2, update_epochs=2, total_timesteps=16 * 32 * 3)
+    config = Config(num_envs=16, num_steps=32, num_minibatches=2, update_epochs=2, total_timesteps=16 * 32 * 3)
     state, metrics = jax.jit(ppo.make_train(config, env))(jax.random.PRNGKey(0))
     assert state.obs.shape == (16, 4)
     for name, value in vars(metrics).items():

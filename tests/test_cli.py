@@ -11,10 +11,11 @@ import pytest
 from flax import serialization
 
 from rpo_jax import envs, load_policy, ppo, train
+from rpo_jax.config import Config
 from rpo_jax.networks import policy_distribution
-from rpo_jax.policy import PARAMS_FILE
 from rpo_jax.report import tail_mean as final_return
-from rpo_jax.train import chunk_length
+from rpo_jax.rundir import PARAMS_FILE
+from rpo_jax.runner import chunk_length
 
 TINY = [
     "--env", "cartpole", "--algo", "rpo", "--num-envs", "8", "--num-steps", "16",
@@ -41,7 +42,7 @@ def test_every_output_file_is_written_and_valid(run_dir):
     config = json.loads((run_dir / "config.json").read_text())
     assert config["env"] == "cartpole" and config["algo"] == "rpo" and config["seeds"] == [3, 4]
     assert config["config"]["rpo_alpha"] == 0.5 and config["config"]["num_envs"] == 8
-    ppo.Config(**{**config["config"], "hidden_sizes": tuple(config["config"]["hidden_sizes"])}).validate()
+    Config.from_dict(config["config"]).validate()
 
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     num_updates = 1280 // (8 * 16)
@@ -72,7 +73,7 @@ def test_load_policy_acts_like_the_trained_parameters(run_dir):
     actor_params = jax.tree.map(lambda x: jnp.asarray(x[seed_index]), saved["params"]["actor"])
     stats = envs.RunningMeanStd(**{k: jnp.asarray(v[seed_index]) for k, v in saved["obs_stats"].items()})
     assert float(stats.count) > 1  # the normaliser's statistics were saved, not the initial ones
-    config = ppo.Config(num_envs=8, num_steps=16, num_minibatches=2)
+    config = Config(num_envs=8, num_steps=16, num_minibatches=2)
     actor, _ = ppo.make_networks(config, 1)
 
     obs = jax.random.normal(jax.random.PRNGKey(0), (16, 4)) * 2
@@ -126,3 +127,32 @@ def test_chunks_divide_the_run_so_it_compiles_once():
     for num_updates in (1, 7, 244, 1525, 1000):
         chunk = chunk_length(num_updates)
         assert num_updates % chunk == 0 and chunk <= max(1, num_updates // 50)
+
+
+def test_help_lists_every_field_with_choices_and_imports_no_jax():
+    code = (
+        "import sys, contextlib, io\n"
+        "from rpo_jax import train\n"
+        "out = io.StringIO()\n"
+        "with contextlib.redirect_stdout(out):\n"
+        "    try:\n"
+        "        train.main(['--help'])\n"
+        "    except SystemExit as exit:\n"
+        "        assert exit.code == 0\n"
+        "heavy = sorted(m for m in ('jax', 'mujoco', 'flax', 'brax') if m in sys.modules)\n"
+        "print(out.getvalue()); print('HEAVY', heavy)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "HEAVY []" in result.stdout
+    for text in ("--algo {ppo,rpo,rad,drac}", "--dist {gaussian,laplace,gumbel}", "--lr-schedule", "(default: 0.5)"):
+        assert text in result.stdout, text
+    assert "--rpo-alpha" in result.stdout and "--no-normalize-obs" in result.stdout
+
+
+def test_help_shows_the_presets_values():
+    result = subprocess.run(
+        [sys.executable, "-m", "rpo_jax.train", "--preset", "isaacgym", "--help"], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0
+    assert "(default: 512)" in result.stdout and "(default: adaptive)" in result.stdout

@@ -10,13 +10,12 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rpo_jax import envs, evaluate, experiment, load_policy, report, train
-from rpo_jax.checkpoint import CHECKPOINT_DIR
-from rpo_jax.policy import PARAMS_FILE
+from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
+from rpo_jax.errors import UsageError
+from rpo_jax.rundir import CHECKPOINT_DIR, PARAMS_FILE
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
 TINY = [
@@ -70,27 +69,24 @@ def test_kept_fraction_is_the_last_window_over_the_best():
     assert np.isnan(report.kept_fraction([-200.0] * 20))  # no positive window: no ratio
 
 
-def test_every_experiment_builds_valid_training_commands(tmp_path):
+def test_every_experiment_builds_valid_training_plans(tmp_path):
     expected_variants = {
         "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
     }  # fmt: skip
-    parser = train.build_parser()
     for name, spec in experiment.EXPERIMENTS.items():
         definition = experiment.resolve(experiment.build_parser().parse_args([name, "--envs", "cartpole"]))
         assert definition["timesteps"] == (100_000_000 if name == "long-horizon" else 8_000_000)
         variants = []
         for job in spec.jobs:
-            argv = experiment.train_argv(definition, "cartpole", job, tmp_path / job.name)
-            args = parser.parse_args(argv)
-            plan = train.plan_new_run(args)
+            plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name)
             assert plan.num_seeds == 10 and plan.config.num_envs == 512  # the isaacgym preset
-            grid = train.parse_sweeps(plan.sweep, plan.algo, plan.config)
-            defaults = {name: float(getattr(plan.config, name)) for name in ("rpo_alpha", "ent_coef", "lr", "drac_coef")}
-            variants += [job.variant({**defaults, **point}) for point in grid]
+            assert plan.config.algo == job.algo
+            grid = runner.parse_sweeps(plan.sweep, plan.config)
+            variants += [job.variant(run["hparams"]) for run in runner.describe_runs(plan, grid)]
         assert len(set(variants)) == expected_variants[name], (name, variants)
     # BallBalance trains with rl_games' BallBalance config, not Cartpole's.
     definition = experiment.resolve(experiment.build_parser().parse_args(["long-horizon", "--envs", "ballbalance"]))
-    plan = train.plan_new_run(parser.parse_args(experiment.train_argv(definition, "ballbalance", experiment.RPO, tmp_path / "bb")))
+    plan = experiment.job_plan(definition, "ballbalance", experiment.RPO, tmp_path / "bb")
     assert plan.config.hidden_sizes == (128, 64, 32) and plan.config.num_envs == 4096 and plan.config.normalize_value
     assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
 
@@ -116,11 +112,12 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
     saved["config"]["hidden_sizes"] = [64, 64]  # the isaacgym preset trained [32, 32]
     (tampered / "config.json").write_text(json.dumps(saved))
     before = sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*"))
-    with pytest.raises(train.UsageError, match="does not match the config"):
-        train.train(train.build_parser().parse_args(["--resume", str(tampered)]))
+    with pytest.raises(UsageError, match="does not match the config"):
+        runner.train(runner.resumed_plan(tampered))
     assert sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*")) == before
-    with pytest.raises(train.UsageError, match="made with --env cartpole, not brax/ant"):
-        train.train(train.build_parser().parse_args(["--resume", str(tampered), "--env", "brax/ant"]))
+    argv = ["--resume", str(tampered), "--env", "brax/ant"]
+    with pytest.raises(UsageError, match="made with --env cartpole, not brax/ant"):
+        train.make_plan(train.parse_args(argv), argv)
 
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr

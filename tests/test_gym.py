@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import Config
 
 gymnasium = pytest.importorskip("gymnasium")
 pytest.importorskip("gymnax")
 
-SMALL = ppo.Config(
+SMALL = Config(
     num_envs=4, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=4 * 32 * 2, rpo_alpha=0.5
 )
 

@@ -15,6 +15,7 @@ import pytest
 from flax import serialization
 
 from rpo_jax import envs, evaluate, ppo, train
+from rpo_jax.config import Config
 from rpo_jax.envs import MissingExtraError
 from rpo_jax.envs.host import HostEnv, SequentialSimulators
 
@@ -144,7 +145,7 @@ def test_runs_vmapped_over_seeds_each_step_their_own_simulators():
 
 
 def test_trains_on_a_host_env():
-    config = ppo.Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
+    config = Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
     _, metrics = jax.jit(ppo.make_train(config, host_point_mass()))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
         assert value.shape == (2,) and np.isfinite(np.asarray(value)).all(), name

@@ -10,15 +10,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from point_mass import PointMass
 from scipy import special, stats
 
 from rpo_jax import envs, ppo, train
+from rpo_jax.config import Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution
 
-from point_mass import PointMass
-
 EULER_GAMMA = 0.5772156649015329
-TINY = ppo.Config(num_envs=8, num_steps=16, num_minibatches=2, update_epochs=2, total_timesteps=8 * 16)
+TINY = Config(algo="ppo", num_envs=8, num_steps=16, num_minibatches=2, update_epochs=2, total_timesteps=8 * 16)
 
 SCIPY = {
     "gaussian": lambda loc, scale: stats.norm(loc, scale),
@@ -76,13 +76,13 @@ def test_log_prob_entropy_and_kl_match_closed_forms(kind):
 
 
 @functools.lru_cache
-def compiled_update(config: ppo.Config):
+def compiled_update(config: Config):
     """One compiled program per config; hyperparameters that differ only in value share it."""
     trainer = ppo.make_trainer(config, PointMass())
     return jax.jit(lambda hparams: trainer.update(trainer.init(jax.random.PRNGKey(0), hparams)))
 
 
-def one_update(config: ppo.Config, **hparams):
+def one_update(config: Config, **hparams):
     """Parameters after one update from the same initial state."""
     values = dataclasses.replace(ppo.Hyperparams.from_config(config), **{
         name: jnp.asarray(value, jnp.float32) for name, value in hparams.items()
@@ -97,7 +97,7 @@ def assert_same_params(a, b):
 
 @pytest.mark.parametrize("kind", sorted(DISTRIBUTIONS))
 def test_rpo_with_alpha_zero_is_ppo_for_every_distribution(kind, monkeypatch):
-    config = dataclasses.replace(TINY, dist=kind)
+    config = dataclasses.replace(TINY, algo="rpo", dist=kind)
     rpo_params = one_update(config, rpo_alpha=0.0)
     with monkeypatch.context() as patch:  # plain PPO: no perturbation drawn or added at all
         patch.setattr(ppo, "perturb_location", lambda loc, key, alpha: loc)
@@ -113,12 +113,12 @@ def test_rad_with_unit_bounds_and_drac_with_zero_weight_are_ppo():
         jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7), a, b)
 
     base = one_update(TINY)
-    assert_same_params(base, one_update(dataclasses.replace(TINY, augmentation="rad", aug_low=1.0, aug_high=1.0)))
-    drac = dataclasses.replace(TINY, augmentation="drac")
+    assert_same_params(base, one_update(dataclasses.replace(TINY, algo="rad", aug_low=1.0, aug_high=1.0)))
+    drac = dataclasses.replace(TINY, algo="drac")
     # DrAC adds network evaluations on augmented inputs, so XLA may fuse the shared part of the
     # loss differently; the update must agree to float32 rounding.
     assert_close(base, one_update(drac, drac_coef=0.0))
-    for changed in (one_update(dataclasses.replace(TINY, augmentation="rad")), one_update(drac, drac_coef=1.0)):
+    for changed in (one_update(dataclasses.replace(TINY, algo="rad")), one_update(drac, drac_coef=1.0)):
         with pytest.raises(AssertionError):
             assert_close(base, changed)
 
@@ -148,7 +148,7 @@ def test_a_sweep_equals_its_runs_made_one_by_one():
     assert not np.allclose(swept_metrics.policy_loss[0], swept_metrics.policy_loss[2])
 
 
-def train_cartpole_briefly(config: ppo.Config):
+def train_cartpole_briefly(config: Config):
     config = dataclasses.replace(config, total_timesteps=8 * 16 * 4)
     _, metrics = jax.jit(ppo.make_train(config, envs.make_env("cartpole")))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
@@ -158,16 +158,16 @@ def train_cartpole_briefly(config: ppo.Config):
 
 # Together with the CLI sweeps below (RPO with Laplace, PPO with Gumbel), every algorithm and
 # every distribution trains Cartpole in the default suite; the full product is marked slow.
-@pytest.mark.parametrize("kind, augmentation", [("laplace", "rad"), ("gumbel", "drac")])
-def test_augmentations_train_cartpole(kind, augmentation):
-    train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, augmentation=augmentation))
+@pytest.mark.parametrize("kind, algo", [("laplace", "rad"), ("gumbel", "drac")])
+def test_augmentations_train_cartpole(kind, algo):
+    train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, algo=algo))
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(DISTRIBUTIONS))
-@pytest.mark.parametrize("augmentation, alpha", [("none", 0.0), ("none", 0.5), ("rad", 0.0), ("drac", 0.0)])
-def test_every_algorithm_with_every_distribution_trains_cartpole(kind, augmentation, alpha):
-    train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, augmentation=augmentation, rpo_alpha=alpha))
+@pytest.mark.parametrize("algo", ["ppo", "rpo", "rad", "drac"])
+def test_every_algorithm_with_every_distribution_trains_cartpole(kind, algo):
+    train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, algo=algo))
 
 
 def run_cli(*args):
@@ -220,7 +220,9 @@ def test_a_sweep_writes_every_run_with_its_values(tmp_path):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--dist", "cauchy"], "dist must be one of gaussian, laplace, gumbel"),
+        (["--dist", "cauchy"], "invalid choice 'cauchy' for argument '--dist'. Expected one of ('gaussian', 'laplace'"),
+        (["--algo", "ppo", "--rpo-alpha", "0.5"], "--rpo-alpha applies to --algo rpo only, not ppo"),
+        (["--algo", "rpo", "--aug-low", "0.5"], "--aug-low applies to --algo rad or drac only, not rpo"),
         (["--ent-coef", "-0.1"], "ent_coef must be >= 0"),
         (["--algo", "drac", "--drac-coef", "-1"], "drac_coef must be >= 0"),
         (["--algo", "rad", "--aug-low", "1.3", "--aug-high", "1.2"], "0 < aug_low <= aug_high"),

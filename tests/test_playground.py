@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, ppo
+from rpo_jax.config import Config
 from rpo_jax.envs import dmc_tasks
 
 pytest.importorskip("mujoco_playground")
@@ -41,7 +42,7 @@ def test_paper_tasks_without_a_port_are_only_the_quadrupeds():
 def test_pendulum_swingup_trains_and_truncates_at_1000_steps():
     env = envs.make_env("mjx-dmc/pendulum-swingup")
     # 1,250 steps per environment: each of the 4 ends exactly one episode, by truncation.
-    config = ppo.Config(num_envs=4, num_steps=250, num_minibatches=2, update_epochs=1, total_timesteps=4 * 250 * 5)
+    config = Config(num_envs=4, num_steps=250, num_minibatches=2, update_epochs=1, total_timesteps=4 * 250 * 5)
     _, metrics = jax.jit(ppo.make_train(config, env))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name

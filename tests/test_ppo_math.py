@@ -12,9 +12,10 @@ import pytest
 import scipy.stats
 
 from rpo_jax import ppo
+from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import make_env
 from rpo_jax.networks import perturb_location, policy_distribution
-from rpo_jax.ppo import PRESETS, Batch, Config, compute_gae, make_networks, make_trainer, ppo_loss
+from rpo_jax.ppo import Batch, compute_gae, make_networks, make_trainer, ppo_loss
 
 # --------------------------------------------------------------------------------------------
 # GAE
@@ -160,7 +161,7 @@ def test_perturb_location_with_zero_alpha_is_the_identity():
 
 OBS_SIZE, ACTION_SIZE, BATCH = 4, 2, 32
 # ent_coef > 0 so that the entropy term takes part in the comparison.
-LOSS_CONFIG = Config(ent_coef=0.01)
+LOSS_CONFIG = Config(algo="ppo", ent_coef=0.01)
 
 
 @pytest.fixture(scope="module")
@@ -202,8 +203,8 @@ def hand_written_ppo_loss(params, actor, critic, batch, config):
 
 def test_rpo_with_zero_alpha_is_bit_identical_to_plain_ppo_loss_and_gradients(loss_setup):
     actor, critic, params, batch = loss_setup
-    rpo_zero = dataclasses.replace(LOSS_CONFIG, rpo_alpha=0.0)
-    ppo_config = dataclasses.replace(dataclasses.replace(LOSS_CONFIG, rpo_alpha=0.7), rpo_alpha=0.0)
+    rpo_zero = dataclasses.replace(LOSS_CONFIG, algo="rpo", rpo_alpha=0.0)
+    ppo_config = dataclasses.replace(dataclasses.replace(LOSS_CONFIG, rpo_alpha=0.7), algo="ppo")
     grad_fn = jax.value_and_grad(ppo_loss, has_aux=True)
 
     (loss_a, metrics_a), grads_a = grad_fn(params, actor, critic, batch, jax.random.PRNGKey(10), rpo_zero)
@@ -221,7 +222,7 @@ def test_rpo_with_zero_alpha_is_bit_identical_to_plain_ppo_loss_and_gradients(lo
 def test_rpo_loss_depends_on_perturbation_key_only_when_alpha_positive(loss_setup):
     actor, critic, params, batch = loss_setup
     keys = jax.random.PRNGKey(20), jax.random.PRNGKey(21)
-    rpo = dataclasses.replace(LOSS_CONFIG, rpo_alpha=0.5)
+    rpo = dataclasses.replace(LOSS_CONFIG, algo="rpo", rpo_alpha=0.5)
     rpo_losses = [ppo_loss(params, actor, critic, batch, k, rpo)[0] for k in keys]
     ppo_losses = [ppo_loss(params, actor, critic, batch, k, LOSS_CONFIG)[0] for k in keys]
     assert float(rpo_losses[0]) != float(rpo_losses[1])
@@ -233,7 +234,7 @@ def test_approx_kl_ignores_the_perturbation(loss_setup):
     # approx_kl must measure the unperturbed policy: with alpha = 2 the perturbed ratio alone
     # would give a KL of order alpha^2 / 6.
     actor, critic, params, batch = loss_setup
-    rpo = dataclasses.replace(LOSS_CONFIG, rpo_alpha=2.0)
+    rpo = dataclasses.replace(LOSS_CONFIG, algo="rpo", rpo_alpha=2.0)
     _, rpo_metrics = ppo_loss(params, actor, critic, batch, jax.random.PRNGKey(0), rpo)
     _, ppo_metrics = ppo_loss(params, actor, critic, batch, jax.random.PRNGKey(0), LOSS_CONFIG)
     np.testing.assert_allclose(rpo_metrics.approx_kl, ppo_metrics.approx_kl, rtol=1e-6)

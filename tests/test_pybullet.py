@@ -11,6 +11,7 @@ from rpo_jax import envs, ppo
 pytest.importorskip("pybullet")
 pytest.importorskip("gym")
 
+from rpo_jax.config import Config
 from rpo_jax.envs.pybullet import GYM_IDS, _import_pybullet_envs  # noqa: E402
 
 
@@ -37,7 +38,7 @@ def test_steps_on_the_host_with_gyms_sizes_and_time_limit(name):
 
 @pytest.mark.slow
 def test_ant_trains():
-    config = ppo.Config(num_envs=2, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=128)
+    config = Config(num_envs=2, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=128)
     _, metrics = jax.jit(ppo.make_train(config, envs.make_env("pybullet/Ant")))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name

@@ -20,14 +20,20 @@ def built_spec(name: str) -> envs.EnvSpec:
 
 @pytest.mark.parametrize(
     "name",
-    ["cartpole", "ballbalance", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "dmc/walker-walk", "mjx-dmc/walker-walk"],
+    [
+        "cartpole", "ballbalance", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "dmc/walker-walk",
+        "mjx-dmc/walker-walk",
+    ],  # fmt: skip
 )
 def test_static_spec_is_the_built_environments(name):
     assert envs.env_spec(name) == built_spec(name)
 
 
+BUILT_SLOWLY = [name for name in envs.env_names() if name.startswith(("brax/", "pybullet/", "dmc/", "mjx-dmc/"))]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [name for name in envs.env_names() if name.startswith(("brax/", "pybullet/", "dmc/", "mjx-dmc/"))])
+@pytest.mark.parametrize("name", BUILT_SLOWLY)
 def test_static_spec_is_the_built_environments_everywhere(name):
     assert envs.env_spec(name) == built_spec(name)
 

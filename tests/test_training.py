@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import make_env
-from rpo_jax.ppo import PRESETS, Config, Metrics, make_train, make_trainer
+from rpo_jax.ppo import Metrics, make_train, make_trainer
 
 # A few updates of a tiny RPO run (alpha > 0, so the perturbation keys are part of the result).
 TINY = Config(
@@ -124,9 +125,9 @@ def test_episode_return_is_carried_forward_while_no_episode_finishes():
 LEARNING_BUDGET = 300_000
 
 
-@pytest.mark.parametrize("rpo_alpha", [0.0, 0.5], ids=["ppo", "rpo"])
-def test_learns_cartpole(rpo_alpha):
-    config = Config(total_timesteps=LEARNING_BUDGET, rpo_alpha=rpo_alpha)
+@pytest.mark.parametrize("algo", ["ppo", "rpo"])
+def test_learns_cartpole(algo):
+    config = Config(algo=algo, total_timesteps=LEARNING_BUDGET)
     _, metrics = train_seeds_vmapped(config, keys_for((0, 1)))
     returns = np.asarray(metrics.episode_return)
     last = returns[:, -max(1, config.num_updates // 10) :]

@@ -50,54 +50,15 @@ OBS_CLIP = 5.0
 SPEC = EnvSpec("ballbalance", 24, 3, (-1.0,) * 3, (1.0,) * 3, 500, "mjx")
 
 
-def ballbalance_xml() -> str:
-    """The MJCF model. Angles in radians; all lengths and masses from the constants above."""
-    h = CONTROL_DT
-    # The PD drive integrated implicitly, as PhysX does, written in terms MuJoCo's explicit
-    # Euler step understands: backward Euler on kp (target - q) - kd qdot adds
-    # h kd + h^2 kp to the joint's inertia and h kp to its damping (see the class docstring).
-    drive_armature = h * DRIVE_DAMPING + h * h * DRIVE_STIFFNESS
-    drive_damping = DRIVE_DAMPING + h * DRIVE_STIFFNESS
-    upper_range = "{} {}".format(*UPPER_HINGE_RANGE)
-    lower_range = "{} {}".format(*LOWER_HINGE_RANGE)
-    legs, anchors, pins, drives = [], [], [], []
-    for i, angle in enumerate(LEG_ANGLES):
-        x, y = MOUNT_RADIUS * math.cos(angle), MOUNT_RADIUS * math.sin(angle)
-        # Each leg's frame is the tray's turned by the leg's angle: x points outwards, y along
-        # the tray's rim, which is the axis of both hinges.
-        legs.append(f"""
-      <body name="upper_leg{i}" pos="{x} {y} {-MOUNT_DEPTH}" euler="0 0 {angle}">
-        <joint name="upper_hinge{i}" axis="0 1 0" range="{upper_range}"/>
-        <geom class="leg" fromto="0 0 0 {-LEG_REACH} 0 {-LEG_REACH}"/>
-        <site name="mount{i}"/>
-        <body name="lower_leg{i}" pos="{-LEG_REACH} 0 {-LEG_REACH}">
-          <joint name="lower_hinge{i}" axis="0 1 0" range="{lower_range}"
-                 armature="{drive_armature}" damping="{drive_damping}"/>
-          <geom class="leg" fromto="0 0 0 {LEG_REACH} 0 {-LEG_REACH}"/>
-          <site name="foot{i}" pos="{LEG_REACH} 0 {-LEG_REACH}"/>
-        </body>
-      </body>""")
-        anchors.append(f'<site name="anchor{i}" pos="{x} {y} {LEG_RADIUS}"/>')
-        pins.append(f'<connect site1="foot{i}" site2="anchor{i}"/>')
-        drives.append(
-            f'<position name="drive{i}" joint="lower_hinge{i}" kp="{DRIVE_STIFFNESS}" ctrlrange="{lower_range}"/>'
-        )
-    rim = [2.0 * math.pi * k / TRAY_SIDES for k in range(TRAY_SIDES)]
-    tray_vertices = " ".join(
-        f"{TRAY_RADIUS * math.cos(a)} {TRAY_RADIUS * math.sin(a)} {z}"
-        for a in rim
-        for z in (-TRAY_HALF_THICKNESS, TRAY_HALF_THICKNESS)
-    )
-    forces = "".join(f'<force site="mount{i}"/>' for i in range(3))
-    torques = "".join(f'<torque site="mount{i}"/>' for i in range(3))
-    return f"""
+# The MJCF model; `ballbalance_xml` fills in the sizes and the three legs.
+MODEL_TEMPLATE = """
 <mujoco model="isaacgym_ballbalance">
   <compiler angle="radian"/>
   <!-- One Euler step per control step. Joint damping is explicit here (eulerdamp off): the
        drive's implicit part is in the armature, where the constraint solver sees it too.
        Newton converges in a few iterations on this small system (18 dofs, at most 9 + 6 + 4
        constraint rows), so a low cap keeps vmapped while-loops short. -->
-  <option timestep="{CONTROL_DT}" gravity="0 0 -9.81" integrator="Euler" solver="Newton"
+  <option timestep="{control_dt}" gravity="0 0 -9.81" integrator="Euler" solver="Newton"
           iterations="4" ls_iterations="8">
     <flag eulerdamp="disable"/>
   </option>
@@ -113,35 +74,84 @@ def ballbalance_xml() -> str:
     <equality solimp="0.99 0.999 0.001"/>
     <joint type="hinge" limited="true" solimplimit="0.99 0.999 0.001"/>
     <default class="leg">
-      <geom type="capsule" size="{LEG_RADIUS}" density="1000"/>
+      <geom type="capsule" size="{leg_radius}" density="1000"/>
     </default>
   </default>
   <worldbody>
-    {"".join(anchors)}
-    <body name="tray" pos="0 0 {TRAY_HEIGHT}">
+    {anchors}
+    <body name="tray" pos="0 0 {tray_height}">
       <freejoint name="tray"/>
       <geom name="tray" type="mesh" mesh="tray" density="100"/>
-      {"".join(legs)}
+      {legs}
     </body>
     <body name="ball" pos="0 0 1.5">
       <freejoint name="ball"/>
-      <geom name="ball" type="sphere" size="{BALL_RADIUS}" density="200"/>
+      <geom name="ball" type="sphere" size="{ball_radius}" density="200"/>
     </body>
   </worldbody>
   <contact>
     <pair geom1="ball" geom2="tray"/>
   </contact>
   <equality>
-    {"".join(pins)}
+    {pins}
   </equality>
   <actuator>
-    {"".join(drives)}
+    {drives}
   </actuator>
   <sensor>
-    {forces}{torques}
+    {sensors}
   </sensor>
 </mujoco>
 """
+
+
+def _leg(i: int, angle: float, drive_armature: float, drive_damping: float) -> tuple[str, str, str, str]:
+    """Leg i's bodies, its foot's anchor on the ground, the pin between them and its knee drive."""
+    upper_range = "{} {}".format(*UPPER_HINGE_RANGE)
+    lower_range = "{} {}".format(*LOWER_HINGE_RANGE)
+    x, y = MOUNT_RADIUS * math.cos(angle), MOUNT_RADIUS * math.sin(angle)
+    # Each leg's frame is the tray's turned by the leg's angle: x points outwards, y along
+    # the tray's rim, which is the axis of both hinges.
+    leg = f"""
+      <body name="upper_leg{i}" pos="{x} {y} {-MOUNT_DEPTH}" euler="0 0 {angle}">
+        <joint name="upper_hinge{i}" axis="0 1 0" range="{upper_range}"/>
+        <geom class="leg" fromto="0 0 0 {-LEG_REACH} 0 {-LEG_REACH}"/>
+        <site name="mount{i}"/>
+        <body name="lower_leg{i}" pos="{-LEG_REACH} 0 {-LEG_REACH}">
+          <joint name="lower_hinge{i}" axis="0 1 0" range="{lower_range}"
+                 armature="{drive_armature}" damping="{drive_damping}"/>
+          <geom class="leg" fromto="0 0 0 {LEG_REACH} 0 {-LEG_REACH}"/>
+          <site name="foot{i}" pos="{LEG_REACH} 0 {-LEG_REACH}"/>
+        </body>
+      </body>"""
+    anchor = f'<site name="anchor{i}" pos="{x} {y} {LEG_RADIUS}"/>'
+    pin = f'<connect site1="foot{i}" site2="anchor{i}"/>'
+    drive = f'<position name="drive{i}" joint="lower_hinge{i}" kp="{DRIVE_STIFFNESS}" ctrlrange="{lower_range}"/>'
+    return leg, anchor, pin, drive
+
+
+def ballbalance_xml() -> str:
+    """The MJCF model. Angles in radians; all lengths and masses from the constants above."""
+    h = CONTROL_DT
+    # The PD drive integrated implicitly, as PhysX does, written in terms MuJoCo's explicit
+    # Euler step understands: backward Euler on kp (target - q) - kd qdot adds
+    # h kd + h^2 kp to the joint's inertia and h kp to its damping (see the class docstring).
+    drive_armature = h * DRIVE_DAMPING + h * h * DRIVE_STIFFNESS
+    drive_damping = DRIVE_DAMPING + h * DRIVE_STIFFNESS
+    legs, anchors, pins, drives = zip(*(_leg(i, angle, drive_armature, drive_damping) for i, angle in enumerate(LEG_ANGLES)))
+    rim = [2.0 * math.pi * k / TRAY_SIDES for k in range(TRAY_SIDES)]
+    tray_vertices = " ".join(
+        f"{TRAY_RADIUS * math.cos(a)} {TRAY_RADIUS * math.sin(a)} {z}"
+        for a in rim
+        for z in (-TRAY_HALF_THICKNESS, TRAY_HALF_THICKNESS)
+    )
+    forces = "".join(f'<force site="mount{i}"/>' for i in range(3))
+    torques = "".join(f'<torque site="mount{i}"/>' for i in range(3))
+    return MODEL_TEMPLATE.format(
+        control_dt=CONTROL_DT, tray_vertices=tray_vertices, leg_radius=LEG_RADIUS, anchors="".join(anchors),
+        tray_height=TRAY_HEIGHT, legs="".join(legs), ball_radius=BALL_RADIUS, pins="".join(pins),
+        drives="".join(drives), sensors=forces + torques,
+    )  # fmt: skip
 
 
 @struct.dataclass

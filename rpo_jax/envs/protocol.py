@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from rpo_jax.errors import UsageError
+
 if TYPE_CHECKING:
     import mujoco
 
@@ -105,7 +107,7 @@ def first_step(obs: jax.Array) -> TimeStep:
     return TimeStep(obs, jnp.zeros(obs.shape[:-1]), false, false, obs)
 
 
-class MissingExtraError(ValueError):
+class MissingExtraError(UsageError):
     """An environment needs an optional dependency that is not installed."""
 
     def __init__(self, name: str, module: str, extra: str) -> None:

@@ -15,6 +15,7 @@ from typing import Callable
 from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, playground, pybullet
 from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec
 from rpo_jax.envs.wrappers import vectorize
+from rpo_jax.errors import UsageError
 
 
 @dataclasses.dataclass
@@ -47,7 +48,7 @@ def _entry(name: str) -> _Entry:
     if name not in _REGISTRY:
         close = difflib.get_close_matches(name, _REGISTRY, n=5)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
-        raise ValueError(f"unknown env {name!r}{hint}; python -m rpo_jax.envs lists them")
+        raise UsageError(f"unknown env {name!r}{hint}; python -m rpo_jax.envs lists them")
     return _REGISTRY[name]
 
 
@@ -63,7 +64,7 @@ def env_spec(name: str) -> EnvSpec:
 def make_env(name: str) -> Env:
     """The environment registered under `name`: a single (unbatched) JAX environment, or a
     host-side one (`host.HostEnv`) that only exists batched. `vectorize` batches either.
-    A missing optional dependency raises `MissingExtraError` (a ValueError) naming the
+    A missing optional dependency raises `MissingExtraError` (a UsageError) naming the
     extra to install."""
     return _entry(name).factory()
 

@@ -1,0 +1,253 @@
+"""The configuration of a training run and the table of algorithms, in one place.
+
+`Config` holds every hyperparameter of one run; `PRESETS` are named starting points; the
+algorithms (`ALGORITHMS`: ppo, rpo, rad, drac) say which of the algorithm-specific fields each
+one reads. The library (`rpo_jax.make_train`) and the command line use the same table and the
+same default, RPO with alpha 0.5.
+
+This module imports no JAX, so that the command line can show `--help` without loading it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from typing import Any, Literal
+
+from rpo_jax.errors import UsageError
+
+AlgoName = Literal["ppo", "rpo", "rad", "drac"]
+DistName = Literal["gaussian", "laplace", "gumbel"]
+ActivationName = Literal["tanh", "relu", "elu", "silu"]
+LrScheduleName = Literal["linear", "constant", "adaptive"]
+AUGMENTATIONS = ("none", "rad", "drac")
+
+# The continuous hyperparameters a sweep may vary: they live in the training state as arrays
+# (`ppo.Hyperparams`), so one compiled program trains a whole grid of them.
+SWEEPABLE = ("rpo_alpha", "ent_coef", "lr", "drac_coef")
+
+
+@dataclasses.dataclass(frozen=True)
+class Algorithm:
+    """One row of the algorithm table."""
+
+    name: str
+    summary: str
+    augmentation: str  # one of AUGMENTATIONS
+    perturbs_location: bool  # RPO's U(-rpo_alpha, rpo_alpha) noise on the policy location
+    reads: tuple[str, ...]  # the algorithm-specific Config fields it uses
+
+
+ALGORITHMS: dict[str, Algorithm] = {
+    algorithm.name: algorithm
+    for algorithm in (
+        Algorithm("ppo", "PPO with the clipped surrogate", "none", False, ()),
+        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none", True, ("rpo_alpha",)),
+        Algorithm("rad", "PPO on amplitude-scaled observations (RAD)", "rad", False, ("aug_low", "aug_high")),
+        Algorithm(
+            "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac", False,
+            ("drac_coef", "aug_low", "aug_high"),
+        ),
+    )
+}  # fmt: skip
+# The fields that belong to some algorithms only; giving one to another algorithm is an error.
+ALGORITHM_FIELDS = ("rpo_alpha", "drac_coef", "aug_low", "aug_high")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Hyperparameters of one training run. The defaults are a CPU-sized Cartpole run of RPO."""
+
+    algo: AlgoName = "rpo"
+    """ppo; rpo (perturbed policy location); rad or drac (ppo with amplitude-scaling augmentation)"""
+    total_timesteps: int = 1_000_000
+    """environment steps per run over all parallel environments (rounded down to whole batches)"""
+    num_envs: int = 64
+    """parallel environments in the rollout"""
+    num_steps: int = 32
+    """rollout length per environment and update"""
+    num_minibatches: int = 4
+    """minibatches per epoch; the batch is num_envs * num_steps samples"""
+    update_epochs: int = 4
+    """passes over the batch per update"""
+    lr: float = 1e-3
+    """Adam learning rate (the start value for the linear and adaptive schedules)"""
+    lr_schedule: LrScheduleName = "linear"
+    """linear (annealed to 0), constant, or adaptive (rl_games: x/÷1.5 to keep KL near kl_target)"""
+    kl_target: float = 0.008
+    """target approx-KL per minibatch for the adaptive schedule"""
+    gamma: float = 0.99
+    """discount factor"""
+    gae_lambda: float = 0.95
+    """GAE lambda"""
+    clip_coef: float = 0.2
+    """PPO ratio clip, also used to clip the value loss"""
+    clip_value_loss: bool = True
+    """clip the value update around the rollout's value estimate"""
+    vf_coef: float = 0.5
+    """value-loss coefficient"""
+    ent_coef: float = 0.0
+    """entropy-bonus coefficient"""
+    max_grad_norm: float = 0.5
+    """global-norm gradient clip"""
+    adam_eps: float = 1e-5
+    """Adam epsilon"""
+    norm_adv: bool = True
+    """normalise advantages per minibatch"""
+    rpo_alpha: float = 0.5
+    """rpo only: half-width of the uniform perturbation of the policy location (0 trains as ppo)"""
+    dist: DistName = "gaussian"
+    """action distribution (state-dependent location, free log-scale)"""
+    aug_low: float = 0.6
+    """rad and drac only: lower bound of the amplitude-scaling factor"""
+    aug_high: float = 1.2
+    """rad and drac only: upper bound of the amplitude-scaling factor"""
+    drac_coef: float = 0.1
+    """drac only: weight of DrAC's policy-KL and value regularisers"""
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of both the actor and the critic"""
+    activation: ActivationName = "tanh"
+    """hidden activation"""
+    normalize_obs: bool = True
+    """normalise observations by running statistics"""
+    obs_clip: float = 10.0
+    """clip of normalised observations"""
+    normalize_reward: bool = True
+    """divide rewards by the running std of the discounted return"""
+    reward_clip: float = 10.0
+    """clip of normalised rewards"""
+    reward_scale: float = 1.0
+    """constant factor applied to rewards before normalisation"""
+    normalize_value: bool = False
+    """the critic predicts returns standardised by their running mean and std (rl_games' value normalisation)"""
+
+    @property
+    def algorithm(self) -> Algorithm:
+        return ALGORITHMS[self.algo]
+
+    @property
+    def augmentation(self) -> str:
+        return self.algorithm.augmentation
+
+    @property
+    def batch_size(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_timesteps // self.batch_size
+
+    def hyperparameters(self) -> dict[str, float]:
+        """The sweepable values as the algorithm trains with them: an algorithm that does not
+        perturb the location trains with rpo_alpha 0."""
+        values = {name: float(getattr(self, name)) for name in SWEEPABLE}
+        if not self.algorithm.perturbs_location:
+            values["rpo_alpha"] = 0.0
+        return values
+
+    def validate(self) -> "Config":
+        """Raises UsageError (a ValueError) naming the first invalid field and what is allowed."""
+        _check_choices(self)
+        _check_ranges(self)
+        _check_batch(self)
+        return self
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "Config":
+        """The config recorded in a run's config.json (JSON lists back to tuples). Records made
+        before the algorithm table named the algorithm by `augmentation` and `rpo_alpha > 0`."""
+        values = dict(values)
+        if "augmentation" in values:
+            augmentation = values.pop("augmentation")
+            values["algo"] = augmentation if augmentation != "none" else ("rpo" if values.get("rpo_alpha", 0) > 0 else "ppo")
+        values["hidden_sizes"] = tuple(values["hidden_sizes"])
+        return cls(**values)
+
+
+def choices(name: str) -> tuple[str, ...]:
+    """The allowed values of a categorical Config field."""
+    return typing.get_args(typing.get_type_hints(Config)[name])
+
+
+def _check_choices(config: Config) -> None:
+    for name in ("algo", "dist", "activation", "lr_schedule"):
+        if getattr(config, name) not in choices(name):
+            raise UsageError(f"{name} must be one of {', '.join(choices(name))}, got {getattr(config, name)!r}")
+
+
+def _check_ranges(config: Config) -> None:
+    for name in ("total_timesteps", "num_envs", "num_steps", "num_minibatches", "update_epochs"):
+        if getattr(config, name) <= 0:
+            raise UsageError(f"{name} must be a positive integer, got {getattr(config, name)}")
+    for name in ("lr", "clip_coef", "max_grad_norm", "adam_eps", "obs_clip", "reward_clip", "kl_target", "reward_scale"):
+        if not getattr(config, name) > 0:
+            raise UsageError(f"{name} must be > 0, got {getattr(config, name)}")
+    for name in ("gamma", "gae_lambda"):
+        if not 0 < getattr(config, name) <= 1:
+            raise UsageError(f"{name} must be in (0, 1], got {getattr(config, name)}")
+    for name in ("rpo_alpha", "ent_coef", "vf_coef", "drac_coef"):
+        if not getattr(config, name) >= 0:
+            raise UsageError(f"{name} must be >= 0, got {getattr(config, name)}")
+    if not 0 < config.aug_low <= config.aug_high:
+        raise UsageError(
+            f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {config.aug_low}, {config.aug_high}"
+        )
+    if not config.hidden_sizes or min(config.hidden_sizes) <= 0:
+        raise UsageError(f"hidden_sizes must be positive integers, got {config.hidden_sizes}")
+
+
+def _check_batch(config: Config) -> None:
+    if config.batch_size % config.num_minibatches:
+        raise UsageError(
+            f"num_minibatches must divide num_envs * num_steps = {config.batch_size}, got {config.num_minibatches}"
+        )
+    if config.minibatch_size < 2:
+        raise UsageError(
+            f"num_minibatches must leave at least 2 samples per minibatch, got "
+            f"{config.num_minibatches} minibatches of a batch of {config.batch_size}"
+        )
+    if config.total_timesteps < config.batch_size:
+        raise UsageError(
+            f"total_timesteps must be at least one batch (num_envs * num_steps = "
+            f"{config.batch_size}), got {config.total_timesteps}"
+        )
+
+
+def check_applies(algo: str, names: typing.Iterable[str], label: typing.Callable[[str], str]) -> None:
+    """Refuses, naming it by `label(name)`, the first algorithm-specific field among `names` that
+    `algo` does not read."""
+    for name in names:
+        if name in ALGORITHM_FIELDS and name not in ALGORITHMS[algo].reads:
+            owners = " or ".join(a.name for a in ALGORITHMS.values() if name in a.reads)
+            raise UsageError(f"{label(name)} applies to --algo {owners} only, not {algo}")
+
+
+PRESETS: dict[str, Config] = {
+    # CleanRL's ppo_continuous_action / rpo_continuous_action, as in the paper.
+    "paper": Config(
+        total_timesteps=8_000_000, num_envs=1, num_steps=2048, num_minibatches=32,
+        update_epochs=10, lr=3e-4, lr_schedule="linear", vf_coef=0.5, max_grad_norm=0.5,
+    ),
+    # rl_games' IsaacGym Cartpole config. Kept: sizes, ELU [32, 32], KL-adaptive lr, value
+    # coefficient 4 (rl_games halves its squared error too), grad norm 1, reward scale 0.1,
+    # observation normalisation with the task's +-5 clip. rl_games' value normalisation is
+    # `normalize_value`, left off here so that the Cartpole results stay comparable; its shared
+    # actor-critic trunk is not reproduced (rpo_jax keeps them separate).
+    "isaacgym": Config(
+        total_timesteps=819_200, num_envs=512, num_steps=16, num_minibatches=1,
+        update_epochs=8, lr=3e-4, lr_schedule="adaptive", kl_target=0.008, vf_coef=4.0,
+        max_grad_norm=1.0, hidden_sizes=(32, 32), activation="elu", normalize_reward=False,
+        reward_scale=0.1, obs_clip=5.0,
+    ),
+}  # fmt: skip
+# rl_games' IsaacGym BallBalance config: Cartpole's with an MLP [128, 64, 32], 4096 environments
+# in minibatches of 8192 and value normalisation (without it BallBalance plateaus near 245, see
+# benchmarks/RESULTS.md), for its 250 updates (16M steps).
+PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
+    PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
+    hidden_sizes=(128, 64, 32), normalize_value=True,
+)  # fmt: skip

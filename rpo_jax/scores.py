@@ -1,0 +1,23 @@
+"""How a run's logged curve becomes one number: its final value and how much of its best it kept."""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+
+def tail_mean(values: Sequence[float]) -> float:
+    """Mean over the last 10% of logged updates (at least one): a run's final return or entropy."""
+    tail = max(1, math.ceil(len(values) / 10))
+    return float(np.mean(values[-tail:]))
+
+
+def kept_fraction(values: Sequence[float]) -> float:
+    """The last window of 10% of the logged updates (at least one) as a fraction of the best
+    such window: 1 for a curve that never fell back, NaN where the best window is not positive."""
+    window = max(1, math.ceil(len(values) / 10))
+    windows = np.convolve(values, np.ones(window) / window, mode="valid")
+    best = windows.max()
+    return float(windows[-1] / best) if best > 0 else math.nan

@@ -1,0 +1,54 @@
+"""The configuration's one home: the algorithm table, choices, sweepable names, old records."""
+
+import dataclasses
+import typing
+
+import pytest
+
+from rpo_jax import ppo
+from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Config, choices
+from rpo_jax.errors import UsageError
+from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS
+
+
+def test_the_library_and_the_command_line_share_one_default():
+    assert Config().algo == "rpo" and Config().rpo_alpha == 0.5
+    assert Config().hyperparameters()["rpo_alpha"] == 0.5
+    for preset in PRESETS.values():
+        assert preset.algo == "rpo" and preset.rpo_alpha == 0.5
+
+
+def test_algorithms_that_do_not_perturb_train_with_alpha_zero():
+    for name, algorithm in ALGORITHMS.items():
+        alpha = Config(algo=name).hyperparameters()["rpo_alpha"]
+        assert alpha == (0.5 if algorithm.perturbs_location else 0.0), name
+    assert float(ppo.Hyperparams.from_config(Config(algo="ppo", rpo_alpha=3.0)).rpo_alpha) == 0.0
+
+
+def test_declared_choices_are_the_implemented_ones():
+    assert choices("algo") == tuple(ALGORITHMS)
+    assert set(choices("dist")) == set(DISTRIBUTIONS)
+    assert set(choices("activation")) == set(ACTIVATIONS)
+    assert tuple(ppo.Hyperparams.__dataclass_fields__) == SWEEPABLE
+    hints = typing.get_type_hints(Config)
+    assert all(name in hints for name in ALGORITHM_FIELDS)
+    for algorithm in ALGORITHMS.values():
+        assert set(algorithm.reads) <= set(ALGORITHM_FIELDS)
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [("algo", "sac", "algo must be one of ppo, rpo, rad, drac"), ("dist", "cauchy", "dist must be one of")],
+)
+def test_unknown_choices_are_refused(field, value, message):
+    with pytest.raises(UsageError, match=message):
+        Config(**{field: value}).validate()
+
+
+def test_records_written_before_the_algorithm_table_still_load():
+    record = dataclasses.asdict(Config())
+    del record["algo"]
+    for augmentation, alpha, algo in [("none", 0.0, "ppo"), ("none", 0.5, "rpo"), ("rad", 0.0, "rad"), ("drac", 0.0, "drac")]:
+        old = {**record, "augmentation": augmentation, "rpo_alpha": alpha, "hidden_sizes": [64, 64]}
+        config = Config.from_dict(old)
+        assert config.algo == algo and config.hidden_sizes == (64, 64)
