@@ -20,6 +20,7 @@ AlgoName = Literal["ppo", "rpo", "rad", "drac"]
 DistName = Literal["gaussian", "laplace", "gumbel"]
 ActivationName = Literal["tanh", "relu", "elu", "silu"]
 LrScheduleName = Literal["linear", "constant", "adaptive"]
+TruncationName = Literal["bootstrap", "terminate"]
 AUGMENTATIONS = ("none", "rad", "drac")
 
 # The continuous hyperparameters a sweep may vary: they live in the training state as arrays
@@ -80,6 +81,8 @@ class Config:
     """discount factor"""
     gae_lambda: float = 0.95
     """GAE lambda"""
+    truncation: TruncationName = "bootstrap"
+    """a time-limit end: bootstrap from the final observation's value, or terminate (no bootstrap, as the paper's CleanRL code)"""
     clip_coef: float = 0.2
     """PPO ratio clip, also used to clip the value loss"""
     clip_value_loss: bool = True
@@ -174,7 +177,7 @@ def choices(name: str) -> tuple[str, ...]:
 
 
 def _check_choices(config: Config) -> None:
-    for name in ("algo", "dist", "activation", "lr_schedule"):
+    for name in ("algo", "dist", "activation", "lr_schedule", "truncation"):
         if getattr(config, name) not in choices(name):
             raise UsageError(f"{name} must be one of {', '.join(choices(name))}, got {getattr(config, name)!r}")
 

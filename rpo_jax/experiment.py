@@ -96,6 +96,16 @@ EXPERIMENTS: dict[str, Experiment] = {
     "data-aug": Experiment((PPO, Job("rad", "rad"), Job("drac", "drac"), RPO), "dmc"),
     "alpha-ablation": Experiment((PPO, Job("rpo", "rpo", sweep=("rpo_alpha", RPO_ALPHAS))), "dmc"),
     "long-horizon": Experiment((PPO, RPO), "isaacgym", default_timesteps=100_000_000),
+    # Time limits bootstrapped from the final observation (rpo_jax's default) against treated as
+    # terminal states (the paper's CleanRL code).
+    "truncation": Experiment(
+        tuple(
+            Job(f"{algo}-{handling}", algo, (("truncation", handling),))
+            for handling in ("bootstrap", "terminate")
+            for algo in ("ppo", "rpo")
+        ),
+        "gym",
+    ),
 }
 
 

@@ -55,14 +55,19 @@ def compute_gae(
     truncated: jax.Array,
     gamma: float,
     gae_lambda: float,
+    truncation: str = "bootstrap",
 ) -> tuple[jax.Array, jax.Array]:
     """Generalised advantage estimation with termination and truncation kept apart.
 
     All inputs are [T, N]. `next_values[t]` is the value of the observation step t reached,
     before any auto-reset (the final observation when the episode ended there). A terminated
-    step does not bootstrap; a truncated step bootstraps from its final observation's value;
-    either ends the advantage recursion. Returns (advantages, returns), both [T, N].
+    step does not bootstrap; a truncated step bootstraps from its final observation's value
+    (`truncation="bootstrap"`) or, with "terminate", is treated as terminated, which is what
+    the paper's code (CleanRL) does with every episode end. Either ends the advantage
+    recursion. Returns (advantages, returns), both [T, N].
     """
+    if truncation == "terminate":
+        terminated = terminated | truncated
     not_terminated = 1.0 - terminated.astype(values.dtype)
     continues = 1.0 - (terminated | truncated).astype(values.dtype)
     deltas = rewards + gamma * next_values * not_terminated - values
@@ -361,8 +366,9 @@ def make_batch(
     if config.normalize_value:
         values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
     advantages, returns = compute_gae(
-        traj.reward, values, next_values, traj.terminated, traj.truncated, config.gamma, config.gae_lambda
-    )
+        traj.reward, values, next_values, traj.terminated, traj.truncated, config.gamma, config.gae_lambda,
+        config.truncation,
+    )  # fmt: skip
     if config.normalize_value:
         # The critic learns the new returns on the scale of statistics that include them.
         value_stats = value_stats.update(returns.reshape(-1))

@@ -1,12 +1,17 @@
-"""Tables and figures from experiment results.
+"""Tables and figures from experiment results, or from one training run.
 
     python -m rpo_jax.report experiments/entropy-reg
     python -m rpo_jax.report experiments/distributions experiments/alpha-ablation --out overlay
+    python -m rpo_jax.report runs/cartpole-rpo-20261123-101500
 
 Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes report.md and
-figures/ (PNG): learning curves of return and entropy per environment, a bar chart of
-normalised scores, and the paper's Figure 1 (left). With several directories, variants are
-prefixed by their directory's name so that the experiments overlay.
+figures/ (PNG): per environment and variant the final return with its sample std and a 95%
+bootstrap confidence interval over seeds; across environments the interquartile mean of
+normalised scores and the probability that RPO improves on each baseline, with stratified
+bootstrap intervals (`rpo_jax.aggregate`); learning curves, interval bars, a performance
+profile and the paper's Figure 1 (left). With several directories, variants are prefixed by
+their directory's name so that the experiments overlay. Given a training run's directory
+(metrics.jsonl), it draws that run's curves: return, entropy, losses and learning rate.
 """
 
 from __future__ import annotations
@@ -21,9 +26,11 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from rpo_jax import aggregate, figures
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, usage_failure
 from rpo_jax.files import write_text
+from rpo_jax.rundir import RunDir
 from rpo_jax.scores import kept_fraction, tail_mean
 
 RESULTS_FILE = "results.csv"
@@ -36,22 +43,6 @@ METRIC_COLUMNS = (
 )  # fmt: skip
 COLUMNS = ID_COLUMNS + METRIC_COLUMNS
 TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
-
-NORMALISATION_RULE = (
-    "score = (return - low) / (high - low): (0, 1000) for DeepMind Control (rewards in [0, 1] over "
-    "1000 steps), (0, 500) for cartpole and ballbalance (at most 1 per step over 500 steps); for any "
-    "other environment, low and high are the worst and best variant's mean final return in this "
-    "report, so the best variant scores 1 and the worst 0."
-)
-
-
-def score_range(env: str) -> tuple[float, float] | None:
-    if env.startswith(("dmc/", "mjx-dmc/")):
-        return 0.0, 1000.0
-    if env in ("cartpole", "ballbalance"):
-        return 0.0, 500.0
-    return None
-
 
 def write_results(out: Path, rows: Iterable[dict]) -> None:
     """results.csv through a temporary file, so a crash never leaves half of it."""
@@ -90,19 +81,27 @@ def group_runs(rows: Sequence[dict]) -> dict[tuple[str, str], dict[float, list[d
     return runs
 
 
-def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict[str, float]]:
-    """(env, variant) -> final return and entropy, mean and std over seeds."""
+def _spread(values: np.ndarray) -> dict[str, float]:
+    """Mean, sample std (NaN for one seed) and the 95% bootstrap interval of the mean."""
+    low, high = aggregate.mean_interval(values)
+    std = float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
+    return {"mean": float(np.mean(values)), "std": std, "low": low, "high": high}
+
+
+def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
+    """(env, variant) -> each seed's final return, and the final return and entropy over seeds
+    (mean, sample std, 95% interval), the seed count, steps and late-training fractions."""
     summary = {}
     for key, seeds in group_runs(rows).items():
-        returns = [tail_mean([row["episode_return"] for row in run]) for run in seeds.values()]
-        entropies = [tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()]
+        finals = np.array([tail_mean([row["episode_return"] for row in run]) for run in seeds.values()])
+        entropies = np.array([tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()])
         length = min(len(run) for run in seeds.values())
         mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
+        returns, entropy = _spread(finals), _spread(entropies)
         summary[key] = {
-            "return_mean": float(np.mean(returns)),
-            "return_std": float(np.std(returns)),
-            "entropy_mean": float(np.mean(entropies)),
-            "entropy_std": float(np.std(entropies)),
+            "finals": finals,
+            **{f"return_{name}": value for name, value in returns.items()},
+            **{f"entropy_{name}": value for name, value in entropy.items()},
             "seeds": len(seeds),
             "env_steps": max(run[-1]["env_steps"] for run in seeds.values()),
             "kept": kept_fraction(mean_curve),
@@ -114,19 +113,23 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict[str, float]]:
     return summary
 
 
-def normalised_scores(summary: dict[tuple[str, str], dict[str, float]]) -> dict[tuple[str, str], float]:
+def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, str], np.ndarray]:
+    """(env, variant) -> each seed's normalised final return, for the environments with a
+    fixed score range (`aggregate.SCORE_RANGES`)."""
     scores = {}
-    for env in unique(env for env, _ in summary):
-        means = {variant: stats["return_mean"] for (e, variant), stats in summary.items() if e == env}
-        low, high = score_range(env) or (min(means.values()), max(means.values()))
-        for variant, mean in means.items():
-            scores[env, variant] = (mean - low) / (high - low) if high > low else 1.0
+    for (env, variant), stats in summary.items():
+        normalised = aggregate.normalise(env, stats["finals"])
+        if normalised is not None:
+            scores[env, variant] = normalised
     return scores
 
 
-def _with_spread(value: str, spread: str, seeds: int) -> str:
+def _cell(stats: dict, name: str, digits: int = 2) -> str:
     # One seed has no spread to show: a "± 0.00" would read as a measured one.
-    return value + spread if seeds > 1 else value
+    mean = f"{stats[f'{name}_mean']:.{digits}f}"
+    if stats["seeds"] < 2:
+        return mean
+    return f"{mean} ± {stats[f'{name}_std']:.{digits}f} [{stats[f'{name}_low']:.{digits}f}, {stats[f'{name}_high']:.{digits}f}]"
 
 
 def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
@@ -140,152 +143,26 @@ def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict)
     return lines
 
 
-def _slug(env: str) -> str:
-    return env.replace("/", "_")
-
-
-def write_figures(rows: Sequence[dict], scores: dict, figures: Path) -> list[str]:
-    """The PNG files, as paths relative to the report."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figures.mkdir(parents=True, exist_ok=True)
-    variants = unique(row["variant"] for row in rows)
-    palette = plt.get_cmap("tab10" if len(variants) <= 10 else "tab20")
-    colours = {variant: palette(i % palette.N) for i, variant in enumerate(variants)}
-    runs = group_runs(rows)
-    written = [_write_curves(plt, env, runs, variants, colours, figures) for env in unique(row["env"] for row in rows)]
-    written.append(_write_scores(plt, scores, variants, colours, figures / "normalized-scores.png"))
-    written.append(write_perturbed_gaussian_figure(figures / "perturbed-gaussian.png"))
-    return written
-
-
-def _write_curves(plt, env: str, runs: dict, variants: list[str], colours: dict, figures: Path) -> str:
-    """Return and entropy against steps for every variant on `env`: mean and std over seeds."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for variant in variants:
-        seeds = runs.get((env, variant))
-        if not seeds:
-            continue
-        length = min(len(run) for run in seeds.values())
-        steps = np.array([row["env_steps"] for row in next(iter(seeds.values()))[:length]])
-        for axis, metric in zip(axes, ("episode_return", "policy_entropy")):
-            values = np.array([[row[metric] for row in run[:length]] for run in seeds.values()])
-            mean, std = values.mean(axis=0), values.std(axis=0)
-            axis.plot(steps, mean, color=colours[variant], label=variant, linewidth=1.5)
-            axis.fill_between(steps, mean - std, mean + std, color=colours[variant], alpha=0.2, linewidth=0)
-    for axis, label in zip(axes, ("episode return", "policy entropy (sum over action dimensions)")):
-        axis.set_xlabel("environment steps")
-        axis.set_ylabel(label)
-        axis.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="best")
-    fig.suptitle(f"{env}: mean ± std over seeds")
-    fig.tight_layout()
-    name = f"{_slug(env)}-curves.png"
-    fig.savefig(figures / name, dpi=110)
-    plt.close(fig)
-    return name
-
-
-def _write_scores(plt, scores: dict, variants: list[str], colours: dict, path: Path) -> str:
-    """The bar chart of normalised scores, mean over environments."""
-    mean_scores = {variant: np.mean([s for (e, v), s in scores.items() if v == variant]) for variant in variants}
-    fig, axis = plt.subplots(figsize=(max(5, 0.9 * len(variants) + 2), 4))
-    axis.bar(range(len(variants)), [mean_scores[v] for v in variants], color=[colours[v] for v in variants])
-    axis.set_xticks(range(len(variants)), variants, rotation=30, ha="right")
-    axis.set_ylabel("normalised score, mean over environments")
-    axis.set_title("Normalised final return")
-    axis.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
-
-
-def write_perturbed_gaussian_figure(path: Path, samples: int = 1_000_000, alpha: float = 3.0) -> str:
-    """The paper's Figure 1 (left): N(0, 1) against the perturbed N(0 + z, 1), z ~ U(-alpha, alpha),
-    as histograms of samples."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rng = np.random.default_rng(0)
-    standard = rng.normal(0.0, 1.0, samples)
-    perturbed = rng.normal(rng.uniform(-alpha, alpha, samples), 1.0)
-    bins = np.linspace(-7, 7, 141)
-    fig, axis = plt.subplots(figsize=(6, 4))
-    axis.hist(standard, bins=bins, density=True, alpha=0.55, label="Gaussian N(0, 1)")
-    axis.hist(perturbed, bins=bins, density=True, alpha=0.55, label=f"perturbed: N(z, 1), z ~ U(-{alpha:g}, {alpha:g})")
-    axis.set_xlabel("action")
-    axis.set_ylabel("density (from samples)")
-    axis.set_title("Gaussian and perturbed Gaussian")
-    axis.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path.name
-
-
-def build(out: Path, directories: Sequence[Path]) -> Path:
-    """Writes out/report.md and out/figures/ from the results in `directories`."""
-    rows = []
-    for directory in directories:
-        for row in read_results(directory):
-            if len(directories) > 1:
-                row["variant"] = f"{directory.name}: {row['variant']}"
-            rows.append(row)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = summarise(rows)
-    scores = normalised_scores(summary)
-    envs = unique(row["env"] for row in rows)
-    variants = unique(row["variant"] for row in rows)
-    figures = write_figures(rows, scores, out / FIGURES_DIR) if rows else []
-    experiments = unique(row["experiment"] for row in rows)
-    seeds = sorted({s["seeds"] for s in summary.values()})
-    steps = sorted({s["env_steps"] for s in summary.values()})
-    lines = [
-        f"# Report: {', '.join(experiments) or 'no finished runs'}",
-        "",
-        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
-        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
-        f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
-        "",
-        *_result_tables(summary, envs, variants),
-        *_score_table(scores, envs, variants),
-        "",
-        *(f"![{name}]({FIGURES_DIR}/{name})" for name in figures),
-        "",
-    ]
-    write_text(out / REPORT_FILE, "\n".join(lines))
-    return out / REPORT_FILE
-
-
 def _best(summary: dict, cells: dict, env: str, field: str) -> str | None:
     return max((v for e, v in cells if e == env), key=lambda v: summary[env, v][field], default=None)
 
 
 def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
     """The final return, final entropy and late-training tables with their explanations."""
-    returns = {
-        key: _with_spread(f"{s['return_mean']:.2f}", f" ± {s['return_std']:.2f}", s["seeds"]) for key, s in summary.items()
-    }
-    entropies = {
-        key: _with_spread(f"{s['entropy_mean']:.2f}", f" ± {s['entropy_std']:.2f}", s["seeds"])
-        for key, s in summary.items()
-    }
+    returns = {key: _cell(stats, "return") for key, stats in summary.items()}
+    entropies = {key: _cell(stats, "entropy") for key, stats in summary.items()}
     kept = {
-        key: _with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
+        key: f"{s['kept']:.3f}" + (f" ({s['kept_worst_seed']:.3f})" if s["seeds"] > 1 else "")
         for key, s in summary.items()
         if not math.isnan(s["kept"])
     }
     return [
         "## Final return",
         "",
-        "Mean ± std over seeds of the episode return averaged over the last 10% of logged updates "
-        "(the value alone where a variant has one seed); the best variant of each environment in bold.",
+        "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
+        f"and, in brackets, the {aggregate.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
+        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed); the best mean "
+        "of each environment in bold.",
         "",
         *_table(envs, variants, returns, {env: _best(summary, summary, env, "return_mean") for env in envs}),
         "",
@@ -307,32 +184,199 @@ def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[
     ]
 
 
-def _score_table(scores: dict, envs: list[str], variants: list[str]) -> list[str]:
-    lines = [
-        "## Normalised score",
-        "",
-        NORMALISATION_RULE,
-        "",
-        "| variant | mean over environments | " + " | ".join(envs) + " |",
-        "|---" * (len(envs) + 2) + "|",
-    ]
+def aggregates(scores: dict, variants: list[str]) -> dict[str, dict]:
+    """Per variant over the environments it ran on: the IQM of normalised scores with its
+    stratified bootstrap interval, the mean, and the environments and runs counted."""
+    result = {}
     for variant in variants:
-        per_env = [scores.get((env, variant)) for env in envs]
-        known = [score for score in per_env if score is not None]
-        cells = ["" if score is None else f"{score:.3f}" for score in per_env]
-        lines.append(f"| {variant} | {np.mean(known):.3f} | " + " | ".join(cells) + " |")
+        tasks = [runs for (_, v), runs in scores.items() if v == variant]
+        if tasks:
+            low, high = aggregate.iqm_interval(tasks)
+            result[variant] = {
+                "iqm": aggregate.iqm(*tasks), "low": low, "high": high,
+                "mean": float(np.mean([np.mean(task) for task in tasks])),
+                "envs": len(tasks), "runs": sum(len(task) for task in tasks),
+            }  # fmt: skip
+    return result
+
+
+def improvements(scores: dict, variants: list[str], algos: dict[str, str]) -> list[tuple[str, str, float, float, float]]:
+    """(rpo variant, baseline, P(rpo > baseline), low, high) over the environments both ran on."""
+    found = []
+    for x in (v for v in variants if algos.get(v) == "rpo"):
+        for y in (v for v in variants if algos.get(v) != "rpo"):
+            envs = [env for (env, v) in scores if v == x and (env, y) in scores]
+            if envs:
+                xs, ys = [scores[env, x] for env in envs], [scores[env, y] for env in envs]
+                found.append((x, y, aggregate.probability_of_improvement(xs, ys), *aggregate.improvement_interval(xs, ys)))
+    return found
+
+
+def _aggregate_section(envs: list[str], summary: dict, scores: dict, variants: list[str], algos: dict) -> list[str]:
+    ranged = [env for env in envs if aggregate.score_range(env)]
+    unranged = [env for env in envs if env not in ranged]
+    lines = [
+        "## Across environments",
+        "",
+        "Normalised score = (final return - low) / (high - low), with fixed ranges per environment "
+        "(never rescaled between this report's variants):",
+        "",
+        "| env | low | high | from |",
+        "|---|---|---|---|",
+        *(f"| {env} | {aggregate.score_range(env)[0]:g} | {aggregate.score_range(env)[1]:g} | {aggregate.score_range(env)[2]} |"
+          for env in ranged),
+        "",
+    ]  # fmt: skip
+    if unranged:
+        lines += [f"Left out, having no fixed range: {', '.join(unranged)}.", ""]
+    table = aggregates(scores, variants)
+    if table:
+        lines += [
+            "Interquartile mean (IQM) of the normalised scores of all runs of a variant, pooled over "
+            f"environments, with its {aggregate.CONFIDENCE:.0%} stratified bootstrap interval "
+            "(the runs of each environment resampled on their own), as in Agarwal et al. (2021):",
+            "",
+            "| variant | IQM [95% CI] | mean | environments | runs |",
+            "|---|---|---|---|---|",
+            *(f"| {v} | {t['iqm']:.3f} [{t['low']:.3f}, {t['high']:.3f}] | {t['mean']:.3f} | {t['envs']} | {t['runs']} |"
+              for v, t in table.items()),
+            "",
+        ]  # fmt: skip
+    found = improvements(scores, variants, algos)
+    if found:
+        lines += [
+            "Probability of improvement: the chance that a run of the RPO variant scores above a run of "
+            "the baseline on the same environment, averaged over environments, with its stratified "
+            "bootstrap interval (above 0.5: RPO tends to do better):",
+            "",
+            "| RPO variant | baseline | P(RPO > baseline) [95% CI] |",
+            "|---|---|---|",
+            *(f"| {x} | {y} | {p:.3f} [{low:.3f}, {high:.3f}] |" for x, y, p, low, high in found),
+            "",
+        ]
     return lines
+
+
+def write_figures(rows: Sequence[dict], scores: dict, out: Path) -> list[str]:
+    """The PNG files, as paths relative to the report."""
+    out.mkdir(parents=True, exist_ok=True)
+    variants = unique(row["variant"] for row in rows)
+    colours = figures.colours_for(variants)
+    runs = group_runs(rows)
+    written = []
+    for env in unique(row["env"] for row in rows):
+        series = {v: list(runs[env, v].values()) for v in variants if (env, v) in runs}
+        panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy (sum over action dimensions)"))
+        path = out / f"{figures.slug(env)}-curves.png"
+        written.append(figures.curves(path, f"{env}: mean ± std over seeds", series, panels, colours))
+    table = aggregates(scores, variants)
+    if table:
+        bars = {v: (t["iqm"], t["low"], t["high"]) for v, t in table.items()}
+        written.append(figures.interval_bars(out / "normalized-scores.png", "IQM of normalised final return (95% CI)",
+                                             "normalised score", bars, colours))  # fmt: skip
+        thresholds = np.linspace(0.0, max(1.0, max(float(np.max(s)) for s in scores.values())), 101)
+        fractions = {v: aggregate.performance_profile([s for (_, x), s in scores.items() if x == v], thresholds) for v in table}
+        written.append(figures.profiles(out / "performance-profile.png", thresholds, fractions, colours))
+    written.append(figures.perturbed_gaussian(out / "perturbed-gaussian.png"))
+    return written
+
+
+def build(out: Path, directories: Sequence[Path]) -> Path:
+    """Writes out/report.md and out/figures/ from the results in `directories`."""
+    rows = []
+    for directory in directories:
+        for row in read_results(directory):
+            if len(directories) > 1:
+                row["variant"] = f"{directory.name}: {row['variant']}"
+            rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = summarise(rows)
+    scores = normalised_scores(summary)
+    envs = unique(row["env"] for row in rows)
+    variants = unique(row["variant"] for row in rows)
+    algos = {row["variant"]: row["algo"] for row in rows}
+    written = [f"{FIGURES_DIR}/{name}" for name in write_figures(rows, scores, out / FIGURES_DIR)] if rows else []
+    experiments = unique(row["experiment"] for row in rows)
+    seeds = sorted({s["seeds"] for s in summary.values()})
+    steps = sorted({s["env_steps"] for s in summary.values()})
+    lines = [
+        f"# Report: {', '.join(experiments) or 'no finished runs'}",
+        "",
+        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
+        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
+        f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
+        "",
+        *_result_tables(summary, envs, variants),
+        *_aggregate_section(envs, summary, scores, variants, algos),
+        *(f"![{name}]({name})" for name in written),
+        "",
+    ]
+    write_text(out / REPORT_FILE, "\n".join(lines))
+    return out / REPORT_FILE
+
+
+def _final_returns(runs: list[list[dict]]) -> dict:
+    spread = _spread(np.array([tail_mean([row["episode_return"] for row in run]) for run in runs]))
+    return {**{f"return_{name}": value for name, value in spread.items()}, "seeds": len(runs)}
+
+
+def build_run(run_dir: RunDir, out: Path) -> Path:
+    """Writes out/report.md and out/figures/ for one training run: its curves, one line per
+    sweep point (mean ± std over its seeds), and each point's final return."""
+    record, rows = run_dir.read_config(), run_dir.read_metrics()
+    swept = list(record["sweep"])
+    point_of = {
+        run["run"]: " ".join(f"{name}={run['hparams'][name]:g}" for name in swept) or record["algo"] for run in record["runs"]
+    }
+    by_run: dict[int, list[dict]] = defaultdict(list)
+    for row in rows:
+        by_run[row["run"]].append(row)
+    series: dict[str, list[list[dict]]] = defaultdict(list)
+    for index, run_rows in by_run.items():
+        series[point_of[index]].append(run_rows)
+    colours = figures.colours_for(list(series))
+    (out / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
+    title = f"{record['env']} {record['algo']}: mean ± std over seeds"
+    panels = [
+        (("episode_return", "episode return"), ("policy_entropy", "policy entropy")),
+        (("policy_loss", "policy loss"), ("value_loss", "value loss"), ("learning_rate", "learning rate")),
+    ]
+    written = [
+        figures.curves(out / FIGURES_DIR / f"{name}.png", title, series, metrics, colours)
+        for name, metrics in zip(("return-entropy", "losses"), panels)
+    ]
+    finals = {label: _final_returns(runs) for label, runs in series.items()}
+    lines = [
+        f"# Run: {record['env']} {record['algo']}",
+        "",
+        f"Made by `python -m rpo_jax.report {run_dir.path}` from metrics.jsonl ({len(by_run)} run(s)).",
+        "",
+        "| runs | seeds | final return (mean ± std [95% CI]) |",
+        "|---|---|---|",
+        *(f"| {label} | {stats['seeds']} | {_cell(stats, 'return')} |" for label, stats in finals.items()),
+        "",
+        *(f"![{name}]({FIGURES_DIR}/{name})" for name in written),
+        "",
+    ]  # fmt: skip
+    write_text(out / REPORT_FILE, "\n".join(lines))
+    return out / REPORT_FILE
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = ArgumentParser(prog="python -m rpo_jax.report", description=__doc__.splitlines()[0])
-    parser.add_argument("dirs", nargs="+", type=Path, metavar="DIR", help="experiment directories with results.csv")
+    parser.add_argument(
+        "dirs", nargs="+", type=Path, metavar="DIR", help="experiment directories with results.csv, or one run directory"
+    )
     parser.add_argument("--out", type=Path, help="where report.md and figures/ go (default: DIR when only one)")
     try:
         args = parser.parse_args(argv)
         if args.out is None and len(args.dirs) > 1:
             raise UsageError("--out is needed when overlaying several directories")
-        path = build(args.out or args.dirs[0], args.dirs)
+        run_dir = RunDir(args.dirs[0])
+        if len(args.dirs) == 1 and not (args.dirs[0] / RESULTS_FILE).is_file() and run_dir.has_config():
+            path = build_run(run_dir, args.out or args.dirs[0])
+        else:
+            path = build(args.out or args.dirs[0], args.dirs)
     except UsageError as error:
         return usage_failure(error)
     print(f"report: {path}")

@@ -72,6 +72,7 @@ def test_kept_fraction_is_the_last_window_over_the_best():
 def test_every_experiment_builds_valid_training_plans(tmp_path):
     expected_variants = {
         "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
+        "truncation": 4,
     }  # fmt: skip
     for name, spec in experiment.EXPERIMENTS.items():
         definition = experiment.resolve(experiment.build_parser().parse_args([name, "--envs", "cartpole"]))

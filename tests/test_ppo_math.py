@@ -61,6 +61,54 @@ def test_compute_gae_matches_python_double_loop_with_terminations_and_truncation
     np.testing.assert_allclose(returns, expected_ret, rtol=1e-5, atol=1e-5)
 
 
+def cleanrl_gae(rewards, values, next_value, dones, next_done, gamma, gae_lambda):
+    """CleanRL's ppo_continuous_action.py loop, as the paper ran it. `dones[t]` marks that the
+    observation at t starts an episode (the step before it ended one, by termination or time
+    limit alike); `values[t]` is that observation's value."""
+    T = rewards.shape[0]
+    advantages = np.zeros_like(rewards)
+    lastgaelam = 0
+    for t in reversed(range(T)):
+        if t == T - 1:
+            nextnonterminal, nextvalues = 1.0 - next_done, next_value
+        else:
+            nextnonterminal, nextvalues = 1.0 - dones[t + 1], values[t + 1]
+        delta = rewards[t] + gamma * nextvalues * nextnonterminal - values[t]
+        advantages[t] = lastgaelam = delta + gamma * gae_lambda * nextnonterminal * lastgaelam
+    return advantages, advantages + values
+
+
+def test_terminate_handling_is_cleanrls_gae():
+    rng = np.random.default_rng(1)
+    T, N = 23, 6
+    rewards = rng.normal(size=(T, N))
+    values = rng.normal(size=(T + 1, N))  # the value of every observation, the one after the last step too
+    terminated, truncated = rng.random((T, N)) < 0.15, rng.random((T, N)) < 0.15
+    ended = terminated | truncated
+    assert terminated.any() and truncated.any() and (~ended).any()
+    # Where an episode ended, the value of the observation it reached differs from that of the
+    # next episode's first one, which CleanRL's loop never reads there.
+    next_values = np.where(ended, rng.normal(size=(T, N)), values[1:])
+    gamma, gae_lambda = 0.99, 0.95
+    advantages, returns = compute_gae(
+        *(jnp.asarray(x, jnp.float32) for x in (rewards, values[:-1], next_values)),
+        jnp.asarray(terminated), jnp.asarray(truncated), gamma, gae_lambda, "terminate",
+    )  # fmt: skip
+    dones = np.concatenate([np.zeros((1, N)), ended[:-1]]).astype(float)
+    for n in range(N):
+        expected_adv, expected_ret = cleanrl_gae(
+            rewards[:, n], values[:-1, n], values[-1, n], dones[:, n], float(ended[-1, n]), gamma, gae_lambda
+        )
+        np.testing.assert_allclose(advantages[:, n], expected_adv, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(returns[:, n], expected_ret, rtol=1e-5, atol=1e-5)
+    bootstrapped, _ = compute_gae(
+        *(jnp.asarray(x, jnp.float32) for x in (rewards, values[:-1], next_values)),
+        jnp.asarray(terminated), jnp.asarray(truncated), gamma, gae_lambda, "bootstrap",
+    )  # fmt: skip
+    assert not np.allclose(bootstrapped, advantages)  # the handlings differ exactly at truncations
+    np.testing.assert_array_equal(np.isclose(bootstrapped, advantages, atol=1e-6).all(axis=0), ~truncated.any(axis=0))
+
+
 def _gae(rewards, values, next_values, terminated, truncated, gamma=0.5, gae_lambda=0.5):
     # Single-environment columns [T] -> [T, 1]. Inputs are dyadic, so float32 results are exact.
     col = lambda x, dtype=jnp.float32: jnp.asarray(x, dtype)[:, None]  # noqa: E731

@@ -1,0 +1,78 @@
+"""The report's statistics against hand computations on a small fixed table."""
+
+import math
+
+import numpy as np
+import pytest
+
+from rpo_jax import aggregate, report
+
+RPO = {"dmc/walker-walk": [100.0, 200.0, 300.0, 400.0], "cartpole": [50.0, 100.0, 150.0, 200.0]}
+PPO = {"dmc/walker-walk": [0.0, 0.0, 100.0, 100.0], "cartpole": [0.0, 0.0, 50.0, 50.0]}
+
+
+def rows_of(variant: str, algo: str, finals: dict[str, list[float]], updates: int = 10) -> list[dict]:
+    """results.csv rows of runs whose return is flat, so that each final return is exact."""
+    rows = []
+    for env, values in finals.items():
+        for seed, value in enumerate(values, start=1):
+            for update in range(1, updates + 1):
+                row = dict.fromkeys(report.COLUMNS, 0.0)
+                row.update(experiment="x", env=env, variant=variant, algo=algo, dist="gaussian", seed=float(seed))
+                row.update(update=float(update), env_steps=float(update * 100), episode_return=value, policy_entropy=1.0)
+                rows.append(row)
+    return rows
+
+
+@pytest.fixture(scope="module")
+def table():
+    rows = rows_of("rpo", "rpo", RPO) + rows_of("ppo", "ppo", PPO)
+    summary = report.summarise(rows)
+    return rows, summary, report.normalised_scores(summary)
+
+
+def test_mean_sample_std_and_interval_per_environment(table):
+    _, summary, _ = table
+    walker = summary["dmc/walker-walk", "rpo"]
+    assert walker["seeds"] == 4 and walker["return_mean"] == 250.0
+    # Sample std: deviations 150, 50, 50, 150 -> variance 50000 / 3.
+    assert walker["return_std"] == pytest.approx(math.sqrt(50000 / 3))
+    # A bootstrap interval of the mean lies between the smallest and largest seed, around the mean.
+    assert 100.0 <= walker["return_low"] < 250.0 < walker["return_high"] <= 400.0
+
+
+def test_scores_use_fixed_ranges_not_the_reports_variants(table):
+    _, _, scores = table
+    np.testing.assert_allclose(scores["dmc/walker-walk", "rpo"], [0.1, 0.2, 0.3, 0.4])  # (r - 0) / 1000
+    np.testing.assert_allclose(scores["cartpole", "rpo"], [0.1, 0.2, 0.3, 0.4])  # (r - 0) / 500
+    alone = report.normalised_scores(report.summarise(rows_of("rpo", "rpo", RPO)))
+    np.testing.assert_array_equal(alone["cartpole", "rpo"], scores["cartpole", "rpo"])
+
+
+def test_interquartile_mean_and_probability_of_improvement(table):
+    _, _, scores = table
+    tasks = [scores["dmc/walker-walk", "rpo"], scores["cartpole", "rpo"]]
+    # 8 pooled scores 0.1 0.1 0.2 0.2 0.3 0.3 0.4 0.4; cutting 2 from each end leaves a mean of 0.25.
+    assert aggregate.iqm(*tasks) == pytest.approx(0.25)
+    low, high = aggregate.iqm_interval(tasks)
+    assert 0.1 <= low <= 0.25 <= high <= 0.4
+    baseline = [scores["dmc/walker-walk", "ppo"], scores["cartpole", "ppo"]]
+    # Per task, of 16 pairs RPO wins 14 and ties 2 (0.1 against 0.1): (14 + 1) / 16.
+    assert aggregate.probability_of_improvement(tasks, baseline) == pytest.approx(15 / 16)
+    assert aggregate.probability_of_improvement(baseline, tasks) == pytest.approx(1 / 16)
+    low, high = aggregate.improvement_interval(tasks, baseline)
+    assert 0.5 < low <= 15 / 16 <= high <= 1.0
+
+
+def test_one_seed_has_no_interval():
+    assert aggregate.mean_interval(np.array([3.0])) == (3.0, 3.0)
+
+
+def test_the_report_carries_every_statistic(table, tmp_path):
+    rows, _, _ = table
+    report.write_results(tmp_path, rows)
+    text = report.build(tmp_path, [tmp_path]).read_text()
+    assert "| rpo | 0.250 [" in text and "| 2 | 8 |" in text  # IQM, environments and runs
+    assert "| rpo | ppo | 0.938 [" in text  # probability of improvement
+    assert "250.00 ± 129.10 [" in text
+    assert (tmp_path / report.FIGURES_DIR / "performance-profile.png").is_file()
