@@ -125,6 +125,10 @@ def build_parser() -> ArgumentParser:
     )  # fmt: skip
     parser.add_argument("--num-envs", type=int, help="parallel environments per run (default: the preset's)")
     parser.add_argument(
+        "--num-steps", type=int,
+        help="rollout length per environment (default: the preset's); with --num-envs, keeps the paper's batch of 2048",
+    )  # fmt: skip
+    parser.add_argument(
         "--preset", choices=sorted(PRESETS),
         help="config for every environment (default: rl_games' for the IsaacGym tasks, paper for the rest)",
     )  # fmt: skip
@@ -145,7 +149,7 @@ def resolve(args: argparse.Namespace) -> dict:
         )
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
-    for flag in ("timesteps", "num_envs"):
+    for flag in ("timesteps", "num_envs", "num_steps"):
         if getattr(args, flag) is not None and getattr(args, flag) < 1:
             raise UsageError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
     definition = {
@@ -158,6 +162,8 @@ def resolve(args: argparse.Namespace) -> dict:
         "checkpoint_every": args.checkpoint_every,
         "jobs": [dataclasses.asdict(job) for job in experiment.jobs],
     }
+    if args.num_steps is not None:  # recorded only when given, so that older experiments continue
+        definition["num_steps"] = args.num_steps
     return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
 
 
@@ -189,8 +195,9 @@ def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
 
     preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
     overrides = {"algo": job.algo, **dict(job.config), "total_timesteps": definition["timesteps"]}
-    if definition["num_envs"]:
-        overrides["num_envs"] = definition["num_envs"]
+    for name in ("num_envs", "num_steps"):
+        if definition.get(name):
+            overrides[name] = definition[name]
     return runner.new_plan(
         out=directory, env=env, config=dataclasses.replace(PRESETS[preset], **overrides), preset=preset,
         seed=1, num_seeds=definition["seeds"], sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
