@@ -1,8 +1,8 @@
 """`check_env`: what the trainer relies on of an environment, checked by running it, with one
 line per problem found (`python -m rpo_jax.envs --check NAME` prints them).
 
-A JAX environment is reset and stepped under `jax.jit` for a few steps, then `num_envs` copies
-run vmapped with the trainer's own time limit and auto-reset (`wrappers.VectorEnv`) for one
+A JAX environment is reset and stepped under `jax.jit` for a few steps; if that found nothing,
+`num_envs` copies run vmapped with the trainer's own time limit and auto-reset (`wrappers.VectorEnv`) for one
 step more than `max_episode_steps`, with random actions within the bounds. A host-side one
 runs its batch (`vectorize`) the same way, so that its simulators' own time limit is checked.
 """
@@ -48,10 +48,11 @@ def check_env(env: Any, key: jax.Array | None = None, num_envs: int = 2) -> list
             f"spec.backend is {env.spec.backend!r}, but the environment is {kind}: "
             "the backend is 'host' exactly for host-side environments, whose state no checkpoint holds"
         )
-    if problems and any(p.startswith("spec.action") for p in problems):
-        return problems  # actions within the bounds cannot be drawn
     if not host:
-        problems += _guarded("one environment under jax.jit", lambda: single_problems(env, single_key))
+        found = _guarded("one environment under jax.jit", lambda: single_problems(env, single_key))
+        if found:
+            # The vmapped episodes would only repeat them, or fail because of them.
+            return problems + found
     batch = vectorize(env, num_envs)
     try:
         problems += _guarded(f"{num_envs} environments vmapped", lambda: batch_problems(batch, batch_key))
@@ -79,7 +80,7 @@ def spec_problems(spec: EnvSpec) -> list[str]:
     for field in ("action_low", "action_high"):
         bounds = getattr(spec, field)
         if len(bounds) != spec.action_size:
-            problems.append(f"spec.{field} has {len(bounds)} values for action_size {spec.action_size}")
+            problems.append(f"spec.{field} has {len(bounds)} bound(s) for action_size {spec.action_size}")
         elif not all(math.isfinite(float(x)) for x in bounds):
             problems.append(f"spec.{field} is not finite: {bounds}")
     if not problems and not all(lo < hi for lo, hi in zip(spec.action_low, spec.action_high)):
@@ -89,7 +90,7 @@ def spec_problems(spec: EnvSpec) -> list[str]:
 
 def timestep_problems(ts: TimeStep, spec: EnvSpec, batch: tuple[int, ...], where: str) -> list[str]:
     """Shapes, dtypes and finiteness of a time step with leading axes `batch`."""
-    problems = []
+    found: list[tuple[str, str]] = []  # (field, what is wrong with it)
     expected = {
         "obs": batch + (spec.observation_size,), "final_obs": batch + (spec.observation_size,),
         "reward": batch, "terminated": batch, "truncated": batch,
@@ -97,15 +98,17 @@ def timestep_problems(ts: TimeStep, spec: EnvSpec, batch: tuple[int, ...], where
     for field, shape in expected.items():
         value = getattr(ts, field)
         if tuple(value.shape) != shape:
-            problems.append(f"{where}: {field} has shape {tuple(value.shape)}, the spec needs {shape}")
+            found.append((field, f"has shape {tuple(value.shape)}, the spec needs {shape}"))
         flag = field in ("terminated", "truncated")
         if flag and value.dtype != jnp.bool_:
-            problems.append(f"{where}: {field} has dtype {value.dtype}; it must be bool")
+            found.append((field, f"has dtype {value.dtype}; it must be bool"))
         if not flag and not jnp.issubdtype(value.dtype, jnp.floating):
-            problems.append(f"{where}: {field} has dtype {value.dtype}; it must be a floating dtype")
+            found.append((field, f"has dtype {value.dtype}; it must be a floating dtype"))
         elif not flag and not bool(np.isfinite(np.asarray(value)).all()):
-            problems.append(f"{where}: {field} is not finite (NaN or inf)")
-    return problems
+            found.append((field, "is not finite (NaN or inf)"))
+    # final_obs is mostly obs again: its problem is told only when it is not obs's.
+    of_obs = {what for field, what in found if field == "obs"}
+    return [f"{where}: {field} {what}" for field, what in found if not (field == "final_obs" and what in of_obs)]
 
 
 def random_actions(spec: EnvSpec, key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
@@ -122,12 +125,18 @@ def single_problems(env: Any, key: jax.Array) -> list[str]:
     _, again = reset(key)
     if not _same(ts.obs, again.obs):
         problems.append("reset(key): two resets with the same key gave different observations")
-    for index, action_key in enumerate(jax.random.split(jax.random.fold_in(key, 1), SINGLE_STEPS), start=1):
+    for action_key in jax.random.split(jax.random.fold_in(key, 1), SINGLE_STEPS):
         state, ts = step(state, random_actions(spec, action_key, ()))
-        found = timestep_problems(ts, spec, (), f"step {index}")
-        if found:
-            return problems + found  # the first faulty step, not the same lines again
-    return problems
+        problems += timestep_problems(ts, spec, (), f"step(state, action) within {SINGLE_STEPS} steps")
+    # Each problem once: not again for each step, nor for step after reset.
+    told: set[str] = set()
+    unique = []
+    for problem in problems:
+        what = problem.partition(": ")[2]
+        if what not in told:
+            told.add(what)
+            unique.append(problem)
+    return unique
 
 
 def batch_problems(env: BatchedEnv, key: jax.Array) -> list[str]:
