@@ -44,7 +44,7 @@ class GoalReachState:
 class GoalReach:
     """Observation (6): position, velocity, goal. Action (2): a force in [-1, 1]^2. Reward per
     step: minus the distance to the goal; reaching it (closer than 0.1) terminates the episode,
-    which ends the penalties, so the policy learns to get there fast. `rpo_jax.envs.TimeLimit`
+    which ends the penalties, so getting there fast pays. `rpo_jax.envs.TimeLimit`
     truncates episodes after `spec.max_episode_steps`: the environment itself never truncates."""
 
     spec = SPEC

@@ -117,8 +117,19 @@ def test_check_env_passes(name):
     assert rpo_jax.check_env(envs.make_env(name)) == []
 
 
+# Found by check_env: Minitaur's first observations for one seed differ from one build of the
+# simulators to the next (by up to 0.3 in the motor angles), in plain Python as well.
+NONDETERMINISTIC = pytest.mark.xfail(reason="pybullet's Minitaur resets differently for the same seed", strict=True)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name", [name for name in envs.env_names() if name not in FAST])
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=NONDETERMINISTIC) if name == "pybullet/Minitaur" else name
+        for name in envs.env_names() if name not in FAST
+    ],
+)  # fmt: skip
 def test_check_env_passes_on_every_registered_environment(name):
     try:
         env = envs.make_env(name)
@@ -156,3 +167,15 @@ def test_check_command_prints_a_line_per_problem_and_exits_1(capsys):
     assert capsys.readouterr().out == f"{EXAMPLE}: no problems found\n"
     assert envs_main(["--check", "broken_envs:nothing"]) == 2
     assert capsys.readouterr().err == "error: env 'broken_envs:nothing': module broken_envs has no attribute nothing\n"
+
+
+def test_experiment_takes_import_paths_and_refuses_broken_ones(tmp_path, capsys):
+    from rpo_jax import experiment
+
+    args = experiment.build_parser().parse_args(["ppo-vs-rpo", "--envs", EXAMPLE, "gymnasium/HalfCheetah-v5"])
+    assert experiment.resolve(args)["envs"] == [EXAMPLE, "gymnasium/HalfCheetah-v5"]
+    assert experiment.run_dir(tmp_path, EXAMPLE, experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]).parent.name == (
+        "examples.goal_reach_make_env"
+    )
+    assert experiment.main(["ppo-vs-rpo", "--envs", "examples.nowhere:make_env", "--out", str(tmp_path / "x")]) == 2
+    assert "cannot import examples.nowhere" in capsys.readouterr().err
