@@ -7,7 +7,7 @@ from typing import Any
 _EXPORTS = {
     "Config": "rpo_jax.config", "PRESETS": "rpo_jax.config", "ALGORITHMS": "rpo_jax.config",
     "make_train": "rpo_jax.ppo", "make_trainer": "rpo_jax.ppo", "load_policy": "rpo_jax.policy",
-    "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs",
+    "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs", "check_env": "rpo_jax.envs",
 }  # fmt: skip
 
 __all__ = sorted(_EXPORTS)

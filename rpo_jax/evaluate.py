@@ -138,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         saved = run_dir.read_config()
         if not 0 <= args.run < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
-        env = envs.make_env(saved["env"])
+        try:
+            env = envs.make_env(saved["env"])
+        except UsageError as error:
+            raise UsageError(f"{args.run_dir}: its environment cannot be rebuilt: {error}") from None
         policy = load_policy(args.run_dir, args.run)
         key = jax.random.PRNGKey(args.seed)
         returns = episode_returns(env, policy, args.episodes, key, args.deterministic)

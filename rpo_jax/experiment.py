@@ -142,11 +142,8 @@ def resolve(args: argparse.Namespace) -> dict:
     """The experiment's full definition, as recorded in experiment.json."""
     experiment = EXPERIMENTS[args.name]
     env_names = list(args.envs or SUITES[args.suite or experiment.default_suite])
-    unknown = [name for name in env_names if name not in envs.env_names()]
-    if unknown:
-        raise UsageError(
-            f"unknown environment(s) {', '.join(unknown)}; python -m rpo_jax.envs lists the valid names"
-        )
+    for name in env_names:
+        envs.env_spec(name)  # registered names, gymnasium/<id> and import paths; else a one-line error
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     for flag in ("timesteps", "num_envs", "num_steps"):
@@ -168,7 +165,7 @@ def resolve(args: argparse.Namespace) -> dict:
 
 
 def run_dir(out: Path, env: str, job: Job) -> Path:
-    return out / "runs" / env.replace("/", "_") / job.name
+    return out / "runs" / env.replace("/", "_").replace(":", "_") / job.name
 
 
 def prepare_out(out: Path, definition: dict) -> None:

@@ -40,7 +40,8 @@ class TrainArgs:
 
     config: tyro.conf.OmitArgPrefixes[Config] = Config()
     env: str = "cartpole"
-    """environment name (python -m rpo_jax.envs lists them)"""
+    """environment: a registered name (python -m rpo_jax.envs lists them), gymnasium/<id>, or an import path
+    package.module:factory"""
     preset: PresetName | None = None
     """start from a named config instead of the CPU defaults"""
     seed: int = 1
@@ -138,7 +139,8 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         check_resume(args, given, saved)
         return plan
     check_new_run(args, given)
-    out = args.out or Path("runs") / f"{args.env.replace('/', '_')}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name
+    out = args.out or Path("runs") / f"{env}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     return runner.new_plan(
         out=out, env=args.env, config=args.config, preset=args.preset, seed=args.seed, num_seeds=args.num_seeds,
         sweep=args.sweep, log_every=args.log_every, checkpoint_every=args.checkpoint_every,

@@ -162,7 +162,7 @@ def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_pat
 
 def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
     cases = [
-        (["ppo-vs-rpo", "--envs", "nowhere"], "unknown environment(s) nowhere"),
+        (["ppo-vs-rpo", "--envs", "nowhere"], "unknown env 'nowhere'"),
         (["ppo-vs-rpo", "--envs", "cartpole", "--seeds", "0"], "--seeds must be >= 1"),
         (["no-such-experiment"], "invalid choice"),
         # The same directory with another definition: never mixed, never overwritten.

@@ -54,7 +54,9 @@ def test_listing_imports_no_simulator():
     )
     result = run_module("-c", check)
     assert result.returncode == 0, result.stderr
-    names = [line.split()[0] for line in result.stdout.splitlines()[1:]]
+    table, note = result.stdout.split("\n\n")
+    names = [line.split()[0] for line in table.splitlines()[1:]]
+    assert "gymnasium/<id>" in note and "package.module:factory" in note
     assert {"cartpole", "ballbalance", "brax/ant", "dmc/walker-walk"} <= set(names)
     assert tuple(names) == envs.env_names()
 
@@ -81,14 +83,17 @@ def test_a_registered_spec_is_listed_without_building(isolated_registry, capsys)
     envs.register_env("mine", Unbuildable(), SPEC)
     assert envs.env_names()[-1] == "mine" and envs.env_spec("mine") == SPEC
     assert main([]) == 0
-    assert capsys.readouterr().out.splitlines()[-1].split() == ["mine", "jax", "3", "2", "10"]
+    table = capsys.readouterr().out.split("\n\n")[0]
+    assert table.splitlines()[-1].split() == ["mine", "jax", "3", "2", "10"]
 
 
 def test_register_refuses_a_taken_name_unless_replacing(isolated_registry):
     with pytest.raises(ValueError, match="already registered"):
         envs.register_env("cartpole", Unbuildable(), SPEC)
     assert envs.env_spec("cartpole").observation_size == 4
-    marker = object()
+    from point_mass import PointMass
+
+    marker = PointMass()
     envs.register_env("cartpole", lambda: marker, SPEC, replace=True)
     assert envs.make_env("cartpole") is marker and envs.env_spec("cartpole") == SPEC
 
@@ -112,10 +117,12 @@ def test_unknown_name_is_one_short_line_with_close_matches():
         envs.make_env("cartpol")
     message = str(error.value)
     assert message.startswith("unknown env 'cartpol'") and "cartpole" in message
-    assert "python -m rpo_jax.envs lists them" in message
+    assert "python -m rpo_jax.envs lists them, or give an import path package.module:factory" in message
     assert "\n" not in message and len(message) < 300
     with pytest.raises(ValueError, match=r"^unknown env 'dmc/walker-wlak' \(did you mean dmc/walker-walk"):
         envs.env_spec("dmc/walker-wlak")
     with pytest.raises(ValueError) as error:
         envs.env_spec("zzzzzzzz")
-    assert str(error.value) == "unknown env 'zzzzzzzz'; python -m rpo_jax.envs lists them"
+    assert str(error.value) == (
+        "unknown env 'zzzzzzzz'; python -m rpo_jax.envs lists them, or give an import path package.module:factory"
+    )

@@ -7,10 +7,14 @@ registry of them by name.
   the batch wrappers (episode statistics, action clipping, reward and observation
   normalisation), and `vectorize`.
 - `registry`: `make_env`, `env_spec`, `env_names`, `make_vector_env` and `register_env` for
-  environments of one's own; `python -m rpo_jax.envs` lists the registered names.
+  environments of one's own; `python -m rpo_jax.envs` lists the registered names. `make_env`
+  also takes `gymnasium/<id>` and an import path `package.module:factory`.
+- `check`: `check_env`, the protocol checked by running an environment
+  (`python -m rpo_jax.envs --check NAME`).
 - one module per simulator family: `cartpole` and `ballbalance` (MJX), `brax`, `playground`
   (MuJoCo Playground's DeepMind Control on MJX), and the host-side suites `gym`, `pybullet` and
-  `dmc` (envpool's DeepMind Control), which `host` puts behind the batched protocol.
+  `dmc` (envpool's DeepMind Control) and `gymnasium` (any Gymnasium task with Box spaces),
+  which `host` puts behind the batched protocol.
 
 Importing this package imports no simulator; each family imports its own when one of its
 environments is built.
@@ -23,6 +27,7 @@ import os
 if not os.environ.get("DISPLAY"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
+from rpo_jax.envs.check import check_env  # noqa: E402
 from rpo_jax.envs.host import HostEnv, SequentialSimulators  # noqa: E402
 from rpo_jax.envs.protocol import (  # noqa: E402
     BatchedEnv,
@@ -68,6 +73,7 @@ __all__ = [
     "TimeStep",
     "VectorEnv",
     "Vectorizable",
+    "check_env",
     "env_names",
     "env_spec",
     "first_step",

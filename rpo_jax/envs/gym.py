@@ -1,6 +1,7 @@
 """OpenAI Gym's tasks of the paper: `gym/Pendulum-v1` in JAX (gymnax's port), so its whole
-training stays one jitted program, and `gym/BipedalWalker-v3` on the host (Gymnasium's Box2D
-task, which has no JAX port). Gym's time limits (200 and 1600 steps) are truncations."""
+training stays one jitted program, and the spec of `gym/BipedalWalker-v3`, Gymnasium's Box2D
+task (no JAX port), which the registry builds through `rpo_jax.envs.gymnasium` on the host.
+Gym's time limits (200 and 1600 steps) are truncations."""
 
 from __future__ import annotations
 
@@ -8,9 +9,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from rpo_jax.envs.host import HostEnv, SequentialSimulators
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError, TimeStep, first_step
 
 PENDULUM_SPEC = EnvSpec("gym/Pendulum-v1", 3, 1, (-2.0,), (2.0,), 200, "jax")
@@ -41,43 +40,3 @@ class Pendulum:
         obs, state, reward, _, _ = self.env.step_env(jax.random.PRNGKey(0), state, action, self.params)
         false = jnp.zeros((), bool)
         return state, TimeStep(obs, reward.astype(jnp.float32), false, false, obs)
-
-
-def _bipedal_walker(index: int, seed: int) -> Any:
-    import gymnasium
-
-    # The default wrappers: Gym's TimeLimit (1600 steps, reported as truncation) and its
-    # order and argument checks.
-    env = gymnasium.make("BipedalWalker-v3")
-    env.reset(seed=int(np.random.SeedSequence([seed, index]).generate_state(1)[0]))
-    return env
-
-
-def _reset(env: Any) -> np.ndarray:
-    return env.reset()[0]
-
-
-def _step(env: Any, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-    obs, reward, terminated, truncated, _ = env.step(action)
-    return obs, reward, terminated, truncated
-
-
-def _close(env: Any) -> None:
-    env.close()
-
-
-def bipedal_walker() -> HostEnv:
-    """Gymnasium's BipedalWalker-v3 (Box2D), stepped on the host."""
-    missing = MissingExtraError(BIPEDAL_WALKER_SPEC.name, "gymnasium[box2d]", "gym")
-    try:
-        import gymnasium
-    except ImportError:
-        raise missing from None
-    try:
-        import gymnasium.envs.box2d  # noqa: F401  (needs Box2D and pygame)
-    except (ImportError, gymnasium.error.DependencyNotInstalled):
-        raise missing from None
-    return HostEnv(
-        BIPEDAL_WALKER_SPEC,
-        lambda num_envs, seed: SequentialSimulators(num_envs, seed, _bipedal_walker, _reset, _step, _close),
-    )

@@ -1,0 +1,181 @@
+"""Environments of one's own: the worked example (examples/goal_reach.py) trained from the command
+line by import path and by registered name, resumed and evaluated; Gymnasium tasks by
+`gymnasium/<id>`; check_env on the built-in environments and on planted faults; one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rpo_jax
+from rpo_jax import envs, evaluate, train
+from rpo_jax.envs.__main__ import main as envs_main
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = "examples.goal_reach:make_env"
+TINY = [
+    "--num-envs", "2", "--num-steps", "8", "--num-minibatches", "1", "--update-epochs", "1",
+    "--total-timesteps", "96", "--log-every", "1", "--quiet",
+]  # fmt: skip
+
+
+@pytest.fixture(autouse=True)
+def examples_importable(monkeypatch):
+    """The repository's root on Python's path, as the current directory is under `python -m`."""
+    monkeypatch.syspath_prepend(str(ROOT))
+
+
+def rows(out: Path) -> list[dict]:
+    """metrics.jsonl without its timing column."""
+    lines = (out / "metrics.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(line).items() if k != "sps"} for line in lines]
+
+
+def test_example_by_import_path_trains_resumes_exactly_and_evaluates(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert train.main(["--env", EXAMPLE, *TINY, "--checkpoint-every", "32", "--out", str(out)]) == 0
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["env"] == EXAMPLE and saved["env_spec"]["name"] == "goal-reach"
+    uninterrupted = rows(out)
+    assert [row["update"] for row in uninterrupted] == [1, 2, 3, 4, 5, 6]
+    assert all(np.isfinite(row["value_loss"]) for row in uninterrupted)
+    # As if killed after the checkpoint at update 4: the resumed run rebuilds the environment
+    # from config.json's import path and, a JAX environment, continues exactly.
+    (out / "summary.json").unlink()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert rows(out) == uninterrupted
+    capsys.readouterr()
+    assert evaluate.main([str(out), "--episodes", "4"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"{EXAMPLE} run 0 (seed 1), stochastic policy: return ") and "over 4 episodes" in line
+    # Each step's reward is minus a distance in a 2x2 square, over at most 100 steps.
+    assert -300 < float(line.split("return ")[1].split()[0]) < 0
+
+
+def test_example_by_registered_name_trains_and_evaluates(isolated_registry, tmp_path, capsys):
+    from examples import goal_reach
+
+    out = tmp_path / "named"
+    assert goal_reach.main([*TINY, "--out", str(out)]) == 0
+    assert "goal-reach" in envs.env_names() and envs.env_spec("goal-reach") == goal_reach.SPEC
+    assert json.loads((out / "config.json").read_text())["env"] == "goal-reach"
+    assert "goal-reach run 0 (seed 1), stochastic policy: return " in capsys.readouterr().out
+    # In a process where the name is not registered, the run's environment cannot be rebuilt.
+    del isolated_registry._REGISTRY["goal-reach"]
+    assert evaluate.main([str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {out}: its environment cannot be rebuilt: unknown env 'goal-reach'")
+
+
+@pytest.mark.parametrize(
+    "env, message",
+    [
+        ("examples.nowhere:make_env", "cannot import examples.nowhere (ModuleNotFoundError: No module named 'examples.nowhere')"),
+        ("examples.goal_reach:make_envs", "module examples.goal_reach has no attribute make_envs"),
+        ("examples.goal_reach:GoalReachState", "GoalReachState is not a callable that takes no arguments"),
+        ("rpo_jax.config:Config", "its factory returned a Config, which lacks spec (an EnvSpec), reset(), step()"),
+        ("examples.goal_reach:", "an import path is package.module:factory"),
+        ("gymnasium/CartPole-v1", "its action space is Discrete(2); rpo_jax takes Gymnasium tasks whose"),
+        ("gymnasium/NoSuchTask-v1", "Environment `NoSuchTask` doesn't exist."),
+        ("gym/HalfCheetah-v5", "unknown env 'gym/HalfCheetah-v5' (did you mean gymnasium/HalfCheetah-v5?)"),
+    ],
+)
+def test_an_environment_that_cannot_be_built_is_one_line_and_exit_2(env, message, tmp_path, capsys):
+    assert train.main(["--env", env, "--quiet", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and message in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_gymnasium_task_trains_on_the_host_with_finite_metrics(tmp_path):
+    out = tmp_path / "cheetah"
+    assert train.main(["--env", "gymnasium/HalfCheetah-v5", *TINY, "--out", str(out)]) == 0
+    spec = json.loads((out / "config.json").read_text())["env_spec"]
+    assert spec == {
+        "name": "gymnasium/HalfCheetah-v5", "observation_size": 17, "action_size": 6, "action_low": [-1.0] * 6,
+        "action_high": [1.0] * 6, "max_episode_steps": 1000, "backend": "host",
+    }  # fmt: skip
+    for row in rows(out):
+        assert all(np.isfinite(value) for value in row.values() if isinstance(value, float)), row
+
+
+def test_gymnasium_time_limit_is_a_truncation():
+    env = envs.make_vector_env("gymnasium/HalfCheetah-v5", 1)
+    assert envs.env_spec("gymnasium/HalfCheetah-v5") == env.spec and env.spec.max_episode_steps == 1000
+    # check_env runs max_episode_steps + 1 steps: an episode that ran on, or ended early, is reported.
+    assert envs.check_env(envs.make_env("gymnasium/HalfCheetah-v5"), num_envs=1) == []
+
+
+FAST = ["cartpole", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "gymnasium/LunarLanderContinuous-v3", EXAMPLE]
+
+
+@pytest.mark.parametrize("name", FAST)
+def test_check_env_passes(name):
+    assert rpo_jax.check_env(envs.make_env(name)) == []
+
+
+# Found by check_env: Minitaur's first observations for one seed differ from one build of the
+# simulators to the next (by up to 0.3 in the motor angles), in plain Python as well.
+NONDETERMINISTIC = pytest.mark.xfail(reason="pybullet's Minitaur resets differently for the same seed", strict=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=NONDETERMINISTIC) if name == "pybullet/Minitaur" else name
+        for name in envs.env_names() if name not in FAST
+    ],
+)  # fmt: skip
+def test_check_env_passes_on_every_registered_environment(name):
+    try:
+        env = envs.make_env(name)
+    except envs.MissingExtraError as error:
+        pytest.skip(str(error))
+    assert envs.check_env(env) == []
+
+
+def test_check_env_reports_each_planted_fault_in_one_line():
+    from broken_envs import BrokenJaxEnv, EarlyTruncation, endless_host_env
+
+    assert envs.check_env(BrokenJaxEnv()) == [
+        "spec.action_low has 1 bound(s) for action_size 2",
+        "reset(key): obs has shape (2,), the spec needs (3,)",
+        "reset(key): two resets with the same key gave different observations",
+        "step(state, action) within 5 steps: reward has dtype int32; it must be a floating dtype",
+        "step(state, action) within 5 steps: obs is not finite (NaN or inf)",
+    ]
+    assert envs.check_env(EarlyTruncation()) == ["an episode was truncated after 1 steps, before max_episode_steps = 10"]
+    problems = envs.check_env(endless_host_env())
+    assert len(problems) == 2
+    assert problems[0].startswith("spec.backend is 'jax', but the environment is host-side (it has vectorize)")
+    assert problems[1] == "an episode ran past max_episode_steps = 5: the time limit does not truncate"
+    assert envs.check_env(object()) == [
+        "object lacks spec (an EnvSpec), reset(), step(), which the protocol needs (rpo_jax.envs.protocol.Env)"
+    ]
+
+
+def test_check_command_prints_a_line_per_problem_and_exits_1(capsys):
+    assert envs_main(["--check", "broken_envs:EarlyTruncation"]) == 1
+    assert capsys.readouterr().out == (
+        "broken_envs:EarlyTruncation: an episode was truncated after 1 steps, before max_episode_steps = 10\n"
+    )
+    assert envs_main(["--check", EXAMPLE]) == 0
+    assert capsys.readouterr().out == f"{EXAMPLE}: no problems found\n"
+    assert envs_main(["--check", "broken_envs:nothing"]) == 2
+    assert capsys.readouterr().err == "error: env 'broken_envs:nothing': module broken_envs has no attribute nothing\n"
+
+
+def test_experiment_takes_import_paths_and_refuses_broken_ones(tmp_path, capsys):
+    from rpo_jax import experiment
+
+    args = experiment.build_parser().parse_args(["ppo-vs-rpo", "--envs", EXAMPLE, "gymnasium/HalfCheetah-v5"])
+    assert experiment.resolve(args)["envs"] == [EXAMPLE, "gymnasium/HalfCheetah-v5"]
+    assert experiment.run_dir(tmp_path, EXAMPLE, experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]).parent.name == (
+        "examples.goal_reach_make_env"
+    )
+    assert experiment.main(["ppo-vs-rpo", "--envs", "examples.nowhere:make_env", "--out", str(tmp_path / "x")]) == 2
+    assert "cannot import examples.nowhere" in capsys.readouterr().err
