@@ -22,13 +22,15 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.errors import UsageError, os_failure, usage_failure
 from rpo_jax.files import write_text
+from rpo_jax.rundir import LOCK_FILE
 from rpo_jax.scores import kept_fraction, tail_mean
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
+REPORT_TITLE = "# Report: "  # report.md's first line starts so: how check_out knows its own file
 ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", "rpo_alpha", "ent_coef", "lr", "drac_coef", "seed")
 METRIC_COLUMNS = (
     "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
@@ -67,12 +69,44 @@ def read_results(directory: Path) -> list[dict]:
     if not path.is_file():
         raise UsageError(f"{directory} has no {RESULTS_FILE}; give a directory written by rpo_jax.experiment")
     with open(path, newline="") as file:
-        rows = list(csv.DictReader(file))
-    for row in rows:
+        reader = csv.DictReader(file)
+        missing = [name for name in COLUMNS if name not in (reader.fieldnames or ())]
+        if missing:
+            raise UsageError(f"{path}: column(s) {', '.join(missing)} missing; rpo_jax.experiment writes {', '.join(COLUMNS)}")
+        rows = list(reader)
+    for line, row in enumerate(rows, start=2):
         for name in COLUMNS:
             if name not in TEXT_COLUMNS:
-                row[name] = float(row[name])
+                try:
+                    row[name] = float(row[name])
+                except (TypeError, ValueError):  # TypeError: a short row's cell is None
+                    raise UsageError(f"{path}: line {line}: {name} must be a number, got {row[name]!r}") from None
     return rows
+
+
+# What the report may find in --out besides its own files: an experiment's (report.md goes
+# next to the results it was made from) and the lock of a run writing there.
+EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
+
+
+def check_out(out: Path) -> None:
+    """Refuses an --out that is a file, or a directory holding files the report did not write:
+    it overwrites report.md and figures/, and nothing else may be lost to it."""
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file; give a directory")
+    if not out.exists():
+        return
+    foreign = sorted(entry.name for entry in out.iterdir() if entry.name not in (REPORT_FILE, FIGURES_DIR, *EXPERIMENT_FILES))
+    report = out / REPORT_FILE
+    if report.exists() and (not report.is_file() or not report.read_text(errors="replace").startswith(REPORT_TITLE)):
+        foreign.append(REPORT_FILE)
+    figures = out / FIGURES_DIR
+    if figures.exists() and (not figures.is_dir() or any(entry.suffix != ".png" for entry in figures.iterdir())):
+        foreign.append(FIGURES_DIR)
+    if foreign:
+        raise UsageError(
+            f"--out {out} holds files the report did not write ({', '.join(foreign)}); choose a new or empty directory"
+        )
 
 
 def unique(values: Iterable[str]) -> list[str]:
@@ -237,6 +271,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
             if len(directories) > 1:
                 row["variant"] = f"{directory.name}: {row['variant']}"
             rows.append(row)
+    check_out(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(rows)
     scores = normalised_scores(summary)
@@ -247,7 +282,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     seeds = sorted({s["seeds"] for s in summary.values()})
     steps = sorted({s["env_steps"] for s in summary.values()})
     lines = [
-        f"# Report: {', '.join(experiments) or 'no finished runs'}",
+        f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
         "",
         f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
@@ -335,6 +370,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         path = build(args.out or args.dirs[0], args.dirs)
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
     print(f"report: {path}")
     return 0
 

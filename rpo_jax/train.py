@@ -27,7 +27,7 @@ from typing import Any, Literal, Sequence
 import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
-from rpo_jax.errors import Interrupted, UsageError, usage_failure
+from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
 
 PROG = "python -m rpo_jax.train"
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -178,8 +178,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         summary = train_with_display(plan, args.quiet)
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
+    except Diverged as error:
+        return diverged_failure(error)
     except Interrupted as interrupted:
         print(f"interrupted; continue with: {PROG} --resume {interrupted}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # before the run directory was made: nothing to continue
+        print("interrupted; nothing was written", file=sys.stderr)
         return 130
     print_summary(summary)
     return 0
