@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +123,7 @@ class Checkpointer:
                 ),
             )
         except READ_FAILURES as error:
+            _ignore_callbacks_into_closed_loops()
             raise CheckpointDamaged(f"checkpoint at update {update} is damaged ({_first_line(error)})") from None
         if not isinstance(restored.record, dict):
             raise CheckpointDamaged(f"checkpoint at update {update} is damaged (its record is {restored.record!r})")
@@ -157,6 +159,23 @@ class Checkpointer:
 
     def close(self) -> None:
         self.manager.close()
+
+
+def _ignore_callbacks_into_closed_loops() -> None:
+    """After a failed read, tensorstore's other reads finish later and call back into orbax's
+    event loop, closed by then; each would print a traceback of `RuntimeError: Event loop is
+    closed` although the failure was reported and handled. Those, and only those, are dropped."""
+    previous = sys.unraisablehook
+    if getattr(previous, "ignores_closed_loops", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        value = unraisable.exc_value
+        if not (isinstance(value, RuntimeError) and str(value) == "Event loop is closed"):
+            previous(unraisable)
+
+    hook.ignores_closed_loops = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
 
 
 def _first_line(error: BaseException) -> str:

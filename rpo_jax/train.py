@@ -93,7 +93,11 @@ def given_fields(argv: Sequence[str]) -> set[str]:
 
 def one_line(message: str) -> str:
     """tyro's boxed error as one line: its title, its first section and any suggestion."""
-    lines = [line.strip(" │╭╮╰╯─") for line in message.splitlines()]
+    # tyro draws its box in Unicode on a terminal and in ASCII (rules of dashes) elsewhere.
+    lines = [line.strip(" │╭╮╰╯─|") for line in message.splitlines()]
+    lines = ["" if set(line) <= {"-"} else line for line in lines]
+    if len(lines) > 2 and lines[0] and not lines[1]:  # the ASCII box rules its title off from the text
+        del lines[1]
     sections: list[list[str]] = [[]]
     for line in lines:
         if line.startswith("For full helptext"):
