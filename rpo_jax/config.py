@@ -11,6 +11,7 @@ This module imports no JAX, so that the command line can show `--help` without l
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from typing import Any, Literal
 
@@ -53,6 +54,8 @@ ALGORITHMS: dict[str, Algorithm] = {
 }  # fmt: skip
 # The fields that belong to some algorithms only; giving one to another algorithm is an error.
 ALGORITHM_FIELDS = ("rpo_alpha", "drac_coef", "aug_low", "aug_high")
+# The trainer counts updates and indexes its batch with int32 (XLA's default integers without x64).
+INT32_LIMIT = 2**31
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,20 +158,31 @@ class Config:
     def validate(self) -> "Config":
         """Raises UsageError (a ValueError) naming the first invalid field and what is allowed."""
         _check_choices(self)
+        _check_finite(self)
         _check_ranges(self)
         _check_batch(self)
         return self
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "Config":
-        """The config recorded in a run's config.json (JSON lists back to tuples). Records made
-        before the algorithm table named the algorithm by `augmentation` and `rpo_alpha > 0`."""
+    def from_dict(cls, values: Any) -> "Config":
+        """The config recorded in a run's config.json (JSON lists back to tuples), validated;
+        anything else raises UsageError. Records made before the algorithm table named the
+        algorithm by `augmentation` and `rpo_alpha > 0`; fields added since take their defaults."""
+        if not isinstance(values, dict):
+            raise UsageError(f"not an rpo_jax config: expected an object of fields, got {type(values).__name__}")
         values = dict(values)
         if "augmentation" in values:
             augmentation = values.pop("augmentation")
             values["algo"] = augmentation if augmentation != "none" else ("rpo" if values.get("rpo_alpha", 0) > 0 else "ppo")
-        values["hidden_sizes"] = tuple(values["hidden_sizes"])
-        return cls(**values)
+        unknown = sorted(values.keys() - {field.name for field in dataclasses.fields(cls)})
+        if unknown:
+            raise UsageError(f"not an rpo_jax config: unknown field(s) {', '.join(unknown)}")
+        try:
+            if "hidden_sizes" in values:
+                values["hidden_sizes"] = tuple(values["hidden_sizes"])
+            return cls(**values).validate()
+        except TypeError as error:  # a field of the wrong type, met by a comparison in validate
+            raise UsageError(f"not an rpo_jax config: {error}") from None
 
 
 def choices(name: str) -> tuple[str, ...]:
@@ -180,6 +194,14 @@ def _check_choices(config: Config) -> None:
     for name in ("algo", "dist", "activation", "lr_schedule", "truncation"):
         if getattr(config, name) not in choices(name):
             raise UsageError(f"{name} must be one of {', '.join(choices(name))}, got {getattr(config, name)!r}")
+
+
+def _check_finite(config: Config) -> None:
+    # inf and nan pass every comparison below that matters (inf > 0) or fail it confusingly.
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise UsageError(f"{field.name} must be a finite number, got {value}")
 
 
 def _check_ranges(config: Config) -> None:
@@ -212,6 +234,15 @@ def _check_batch(config: Config) -> None:
         raise UsageError(
             f"num_minibatches must leave at least 2 samples per minibatch, got "
             f"{config.num_minibatches} minibatches of a batch of {config.batch_size}"
+        )
+    if config.batch_size >= INT32_LIMIT:
+        raise UsageError(
+            f"num_envs * num_steps must be below 2**31 = {INT32_LIMIT} samples per batch (int32 indices), "
+            f"got {config.batch_size}"
+        )
+    if config.num_updates >= INT32_LIMIT:
+        raise UsageError(
+            f"total_timesteps / (num_envs * num_steps) must be below 2**31 = {INT32_LIMIT} updates, got {config.num_updates}"
         )
     if config.total_timesteps < config.batch_size:
         raise UsageError(

@@ -26,7 +26,7 @@ import numpy as np
 
 from rpo_jax import envs
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.errors import UsageError, os_failure, usage_failure
 from rpo_jax.policy import load_policy
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
@@ -135,6 +135,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
         if args.video and args.video.exists():
             raise UsageError(f"--video {args.video} already exists; choose a new file")
+        if args.video and not args.video.absolute().parent.is_dir():
+            raise UsageError(f"--video {args.video}: the directory {args.video.absolute().parent} does not exist")
+        if not 0 <= args.seed < 2**32:
+            raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
         saved = run_dir.read_config()
         if not 0 <= args.run < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
@@ -155,6 +159,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"video: {args.video} ({length} steps, return {total:.2f})")
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
     return 0
 
 

@@ -28,9 +28,9 @@ from rpo_jax import envs, report
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.config import PRESETS, SWEEPABLE
 from rpo_jax.envs import dmc_tasks
-from rpo_jax.errors import Interrupted, UsageError, usage_failure
+from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
 from rpo_jax.files import write_json
-from rpo_jax.rundir import RunDir
+from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
 
 SUITES: dict[str, tuple[str, ...]] = {
     "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
@@ -144,6 +144,9 @@ def resolve(args: argparse.Namespace) -> dict:
     env_names = list(args.envs or SUITES[args.suite or experiment.default_suite])
     for name in env_names:
         envs.env_spec(name)  # registered names, gymnasium/<id> and import paths; else a one-line error
+    repeated = sorted({name for name in env_names if env_names.count(name) > 1})
+    if repeated:
+        raise UsageError(f"--envs names {', '.join(repeated)} more than once; give each environment once")
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     for flag in ("timesteps", "num_envs", "num_steps"):
@@ -168,8 +171,9 @@ def run_dir(out: Path, env: str, job: Job) -> Path:
     return out / "runs" / env.replace("/", "_").replace(":", "_") / job.name
 
 
-def prepare_out(out: Path, definition: dict) -> None:
-    """A new directory, or the same experiment's directory to continue; nothing else."""
+def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
+    """A new directory, or the same experiment's directory to continue; nothing else. Writes
+    experiment.json into a new one where `write`."""
     record = out / "experiment.json"
     if record.is_file():
         saved = json.loads(record.read_text())
@@ -180,35 +184,66 @@ def prepare_out(out: Path, definition: dict) -> None:
                 "give the same command to continue it, or a new --out"
             )
         return
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if out.exists() and (not out.is_dir() or any(entry.name != LOCK_FILE for entry in out.iterdir())):
         raise UsageError(f"--out {out} exists and is not an experiment directory; choose a new one")
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(record, definition)
+    if write:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(record, definition)
+
+
+def job_config(definition: dict, env: str, job: Job) -> tuple[str, Any]:
+    """The preset and the config of `job`'s run on `env`."""
+    preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
+    overrides = {"algo": job.algo, **dict(job.config), "total_timesteps": definition["timesteps"]}
+    for name in ("num_envs", "num_steps"):
+        if definition.get(name):
+            overrides[name] = definition[name]
+    return preset, dataclasses.replace(PRESETS[preset], **overrides)
+
+
+def check_jobs(definition: dict, jobs: Sequence[Job]) -> None:
+    """Refuses, before the experiment writes anything, a definition that one of its runs would refuse."""
+    from rpo_jax import runner
+
+    for env in definition["envs"]:
+        for job in jobs:
+            _, config = job_config(definition, env, job)
+            try:
+                runner.check_plan(env, config, 1, definition["seeds"], job.sweep_specs(), None, definition["checkpoint_every"])
+            except UsageError as error:
+                raise UsageError(f"{env} {job.name}: {error}") from None
 
 
 def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
     """The training run of `job` on `env`, as a runner plan."""
     from rpo_jax import runner
 
-    preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
-    overrides = {"algo": job.algo, **dict(job.config), "total_timesteps": definition["timesteps"]}
-    for name in ("num_envs", "num_steps"):
-        if definition.get(name):
-            overrides[name] = definition[name]
+    preset, config = job_config(definition, env, job)
     return runner.new_plan(
-        out=directory, env=env, config=dataclasses.replace(PRESETS[preset], **overrides), preset=preset,
-        seed=1, num_seeds=definition["seeds"], sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
+        out=directory, env=env, config=config, preset=preset, seed=1, num_seeds=definition["seeds"],
+        sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
     )  # fmt: skip
 
 
 def run_experiment(args: argparse.Namespace) -> Path:
+    definition = resolve(args)
+    out = args.out or Path("experiments") / args.name
+    jobs = EXPERIMENTS[args.name].jobs  # experiment.json holds the same, prepare_out checks it
+    check_jobs(definition, jobs)
+    prepare_out(out, definition, write=False)  # refused before the lock creates the directory
+    with hold_lock(out):
+        prepare_out(out, definition)
+        run_jobs(args, out, definition, jobs)
+        report.build(out, [out])
+    return out
+
+
+def run_jobs(args: argparse.Namespace, out: Path, definition: dict, jobs: Sequence[Job]) -> None:
+    """Every (environment, job) run not finished yet, resumed where it started; results.csv
+    after each."""
     from rpo_jax import runner
     from rpo_jax.train import train_with_display
 
-    definition = resolve(args)
-    out = args.out or Path("experiments") / args.name
-    prepare_out(out, definition)
-    jobs = EXPERIMENTS[args.name].jobs  # experiment.json holds the same, prepare_out checked it
     total = len(definition["envs"]) * len(jobs)
     for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
         directory = run_dir(out, env, job)
@@ -227,8 +262,6 @@ def run_experiment(args: argparse.Namespace) -> Path:
         summary = train_with_display(plan, args.quiet)
         print(f"{prefix}: final return {summary['final_return_mean']:.2f}, {summary['sps']:,.0f} steps/s", flush=True)
         report.write_results(out, collect_rows(out, definition, jobs))
-    report.build(out, [out])
-    return out
 
 
 def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:
@@ -262,8 +295,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = run_experiment(args)
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
+    except Diverged as error:
+        return diverged_failure(error)
     except Interrupted as interrupted:
         print(f"interrupted in {interrupted}; the same command continues the experiment", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("interrupted; the same command continues the experiment", file=sys.stderr)
         return 130
     print(f"report: {out / report.REPORT_FILE}")
     return 0

@@ -20,4 +20,5 @@ def write_text(path: Path, text: str) -> None:
 
 
 def write_json(path: Path, payload: Any) -> None:
-    write_text(path, json.dumps(payload, indent=2) + "\n")
+    # allow_nan=False: NaN and Infinity are not JSON, and a reader of the file would choke on them.
+    write_text(path, json.dumps(payload, indent=2, allow_nan=False) + "\n")

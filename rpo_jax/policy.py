@@ -11,8 +11,9 @@ from flax import serialization
 
 from rpo_jax import envs, ppo
 from rpo_jax.config import Config
+from rpo_jax.errors import UsageError
 from rpo_jax.networks import policy_distribution
-from rpo_jax.rundir import RunDir
+from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 
 def load_policy(run_dir: str | Path, run: int = 0) -> Callable[..., jax.Array]:
@@ -29,9 +30,14 @@ def load_policy(run_dir: str | Path, run: int = 0) -> Callable[..., jax.Array]:
     spec = saved_run["env_spec"]
     if not 0 <= run < len(saved_run["runs"]):
         raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")
-    saved = serialization.msgpack_restore(directory.read_params())
-    actor_params = jax.tree.map(lambda x: jnp.asarray(x[run]), saved["params"]["actor"])
-    stats = envs.RunningMeanStd(**{k: jnp.asarray(v[run]) for k, v in saved["obs_stats"].items()})
+    try:
+        saved = serialization.msgpack_restore(directory.read_params())
+        actor_params = jax.tree.map(lambda x: jnp.asarray(x[run]), saved["params"]["actor"])
+        stats = envs.RunningMeanStd(**{k: jnp.asarray(v[run]) for k, v in saved["obs_stats"].items()})
+    except (ValueError, KeyError, TypeError, IndexError) as error:  # msgpack's errors are ValueErrors
+        raise UsageError(f"{directory.path / PARAMS_FILE} is damaged ({error}); rpo_jax.train did not write it whole") from None
+    if not all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves((actor_params, stats))):
+        raise UsageError(f"{directory.path / PARAMS_FILE}: run {run}'s parameters are not finite (NaN or inf)")
     actor, _ = ppo.make_networks(config, spec["action_size"])
     low, high = jnp.asarray(spec["action_low"]), jnp.asarray(spec["action_high"])
 

@@ -225,6 +225,24 @@ class Metrics:
 
 
 @struct.dataclass
+class Diagnostics:
+    """Per-update counts of non-finite numbers, for the runner's guard; not logged, so that
+    metrics.jsonl keeps its rows. Observations and rewards are the rollout's, as the trainer
+    saw them (normalised); parameters are those after the update."""
+
+    nonfinite_observations: jax.Array
+    nonfinite_rewards: jax.Array
+    nonfinite_parameters: jax.Array
+
+    @classmethod
+    def of(cls, traj: "Transition", params: dict) -> "Diagnostics":
+        def count(*arrays):
+            return sum((~jnp.isfinite(x)).sum() for x in arrays)
+
+        return cls(count(traj.obs, traj.final_obs), count(traj.reward, traj.episode_return), count(*jax.tree.leaves(params)))
+
+
+@struct.dataclass
 class Transition:
     """One rollout step of every environment; a leading [T] axis after the rollout."""
 
@@ -299,6 +317,15 @@ class Trainer:
 
     def scan_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
         return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
+
+    def scan_diagnosed_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, tuple[Metrics, Diagnostics]]:
+        """`scan_updates` with each update's `Diagnostics` next to its metrics."""
+
+        def step(state, _):
+            new_state, metrics, traj = update_with_rollout(self, state)
+            return new_state, (metrics, Diagnostics.of(traj, new_state.params))
+
+        return jax.lax.scan(step, state, None, length=num_updates)
 
     def restart_episodes(self, state: TrainState) -> TrainState:
         """`state` with a fresh episode in every environment; parameters, optimiser, counters
@@ -427,6 +454,12 @@ def minibatch_epochs(
 
 def update(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics]:
     """One update: a rollout, its batch, and the minibatch epochs."""
+    new_state, metrics, _ = update_with_rollout(trainer, state)
+    return new_state, metrics
+
+
+def update_with_rollout(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics, Transition]:
+    """`update`, also returning its rollout's transitions [T, N]."""
     config = trainer.config
     key, rollout_key, epochs_key = jax.random.split(state.key, 3)
     opt_state = state.opt_state
@@ -453,7 +486,7 @@ def update(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics]:
         params, opt_state, env_state, obs, key, update_count, state.hparams, value_stats,
         episode_return, episode_length,
     )  # fmt: skip
-    return new_state, metrics
+    return new_state, metrics, traj
 
 
 def finished_episodes(traj: Transition, state: TrainState) -> tuple[jax.Array, jax.Array, jax.Array]:

@@ -28,14 +28,17 @@ import numpy as np
 
 from rpo_jax import aggregate, figures
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.errors import UsageError, os_failure, usage_failure
 from rpo_jax.files import write_text
-from rpo_jax.rundir import RunDir
+from rpo_jax.rundir import (
+    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
+)  # fmt: skip
 from rpo_jax.scores import kept_fraction, tail_mean
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
+REPORT_TITLE = "# Report: "  # report.md's first line starts so: how check_out knows its own file
 ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", "rpo_alpha", "ent_coef", "lr", "drac_coef", "seed")
 METRIC_COLUMNS = (
     "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
@@ -58,12 +61,46 @@ def read_results(directory: Path) -> list[dict]:
     if not path.is_file():
         raise UsageError(f"{directory} has no {RESULTS_FILE}; give a directory written by rpo_jax.experiment")
     with open(path, newline="") as file:
-        rows = list(csv.DictReader(file))
-    for row in rows:
+        reader = csv.DictReader(file)
+        missing = [name for name in COLUMNS if name not in (reader.fieldnames or ())]
+        if missing:
+            raise UsageError(f"{path}: column(s) {', '.join(missing)} missing; rpo_jax.experiment writes {', '.join(COLUMNS)}")
+        rows = list(reader)
+    for line, row in enumerate(rows, start=2):
         for name in COLUMNS:
             if name not in TEXT_COLUMNS:
-                row[name] = float(row[name])
+                try:
+                    row[name] = float(row[name])
+                except (TypeError, ValueError):  # TypeError: a short row's cell is None
+                    raise UsageError(f"{path}: line {line}: {name} must be a number, got {row[name]!r}") from None
     return rows
+
+
+# What the report may find in --out besides its own files: an experiment's (report.md goes
+# next to the results it was made from), a training run's (a run's report goes into its
+# directory), and the lock of a run writing there.
+EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
+RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE)
+
+
+def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
+    """Refuses an --out that is a file, or a directory holding files the report did not write
+    (other than `allowed`): it overwrites report.md and figures/, and nothing else may be lost."""
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file; give a directory")
+    if not out.exists():
+        return
+    foreign = sorted(entry.name for entry in out.iterdir() if entry.name not in (REPORT_FILE, FIGURES_DIR, *allowed))
+    report = out / REPORT_FILE
+    if report.exists() and (not report.is_file() or not report.read_text(errors="replace").startswith(REPORT_TITLE)):
+        foreign.append(REPORT_FILE)
+    figures_dir = out / FIGURES_DIR
+    if figures_dir.exists() and (not figures_dir.is_dir() or any(entry.suffix != ".png" for entry in figures_dir.iterdir())):
+        foreign.append(FIGURES_DIR)
+    if foreign:
+        raise UsageError(
+            f"--out {out} holds files the report did not write ({', '.join(foreign)}); choose a new or empty directory"
+        )
 
 
 def unique(values: Iterable[str]) -> list[str]:
@@ -289,6 +326,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
             if len(directories) > 1:
                 row["variant"] = f"{directory.name}: {row['variant']}"
             rows.append(row)
+    check_out(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(rows)
     scores = normalised_scores(summary)
@@ -300,7 +338,7 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     seeds = sorted({s["seeds"] for s in summary.values()})
     steps = sorted({s["env_steps"] for s in summary.values()})
     lines = [
-        f"# Report: {', '.join(experiments) or 'no finished runs'}",
+        f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
         "",
         f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
@@ -323,6 +361,7 @@ def _final_returns(runs: list[list[dict]]) -> dict:
 def build_run(run_dir: RunDir, out: Path) -> Path:
     """Writes out/report.md and out/figures/ for one training run: its curves, one line per
     sweep point (mean ± std over its seeds), and each point's final return."""
+    check_out(out, RUN_FILES)
     record, rows = run_dir.read_config(), run_dir.read_metrics()
     swept = list(record["sweep"])
     point_of = {
@@ -347,7 +386,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
     ]
     finals = {label: _final_returns(runs) for label, runs in series.items()}
     lines = [
-        f"# Run: {record['env']} {record['algo']}",
+        f"{REPORT_TITLE}run of {record['env']} {record['algo']}",
         "",
         f"Made by `python -m rpo_jax.report {run_dir.path}` from metrics.jsonl ({len(by_run)} run(s)).",
         "",
@@ -379,6 +418,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             path = build(args.out or args.dirs[0], args.dirs)
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
     print(f"report: {path}")
     return 0
 

@@ -8,16 +8,20 @@
 | `params.msgpack` | actor and critic parameters and observation statistics, one slice per run |
 | `tensorboard/` | TensorBoard events, one directory per run |
 | `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.checkpoint`) |
+| `.lock` | the PID of the process writing the run; locked while it does (`hold_lock`) |
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import json
 import os
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Iterator
 
+from rpo_jax.errors import UsageError
 from rpo_jax.files import write_bytes, write_json
 
 CONFIG_FILE = "config.json"
@@ -26,6 +30,7 @@ SUMMARY_FILE = "summary.json"
 PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
+LOCK_FILE = ".lock"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,14 +46,19 @@ class RunDir:
         return self.path / TENSORBOARD_DIR
 
     def is_new(self) -> bool:
-        """Nothing there yet, or an empty directory."""
-        return not self.path.exists() or (self.path.is_dir() and not any(self.path.iterdir()))
+        """Nothing there yet, or an empty directory (but for the lock file of a writer that stopped)."""
+        return not self.path.exists() or (self.path.is_dir() and not any(p.name != LOCK_FILE for p in self.path.iterdir()))
 
     def has_config(self) -> bool:
         return (self.path / CONFIG_FILE).is_file()
 
     def is_finished(self) -> bool:
         return (self.path / SUMMARY_FILE).is_file()
+
+    def has_checkpoint(self) -> bool:
+        """Whether a complete checkpoint exists (orbax names each by its update; a write in
+        progress has a temporary name)."""
+        return self.checkpoints.is_dir() and any(entry.name.isdigit() for entry in self.checkpoints.iterdir())
 
     def has_params(self) -> bool:
         return (self.path / PARAMS_FILE).is_file()
@@ -60,7 +70,20 @@ class RunDir:
         write_json(self.path / CONFIG_FILE, record)
 
     def read_config(self) -> dict[str, Any]:
-        return json.loads((self.path / CONFIG_FILE).read_text())
+        """config.json's record; UsageError, naming the file, where it is missing or not a
+        record that rpo_jax.train wrote."""
+        path = self.path / CONFIG_FILE
+        if not path.is_file():
+            raise UsageError(f"{self.path} has no {CONFIG_FILE}; give a directory written by rpo_jax.train")
+        try:
+            record = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise UsageError(f"{path} is not valid JSON ({error}); it was not written whole by rpo_jax.train") from None
+        keys = record if isinstance(record, dict) else {}
+        missing = [key for key in ("env", "config", "runs", "env_spec", "plan") if key not in keys]
+        if missing:
+            raise UsageError(f"{path} was not written by rpo_jax.train (no {', '.join(missing)})")
+        return record
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         write_json(self.path / SUMMARY_FILE, summary)
@@ -79,23 +102,62 @@ class RunDir:
 
     def cut_metrics(self, size: int) -> list[dict[str, Any]]:
         """Cuts metrics.jsonl back to its first `size` bytes (what a checkpoint recorded) and
-        returns the rows kept."""
-        with open(self.path / METRICS_FILE, "a+b") as metrics:
+        returns the rows kept. A file shorter than that (or missing) lost rows the checkpoint
+        counts on: refused, never padded."""
+        path = self.path / METRICS_FILE
+        have = path.stat().st_size if path.is_file() else None
+        if size and (have is None or have < size):
+            found = "is missing" if have is None else f"has {have} bytes"
+            raise UsageError(
+                f"{path} {found} but the checkpoint counts on its first {size}; its rows were lost, "
+                "so this run cannot be resumed exactly: start it again in a new --out"
+            )
+        with open(path, "a+b") as metrics:
             metrics.truncate(size)
             metrics.seek(0)
             return [json.loads(line) for line in metrics.read().splitlines()]
 
-    def append_metrics(self) -> IO[str]:
-        return open(self.path / METRICS_FILE, "a")
+    def append_metrics(self) -> IO[bytes]:
+        # Unbuffered, so that a failed write (a full disk) can be cut back to whole rows.
+        return open(self.path / METRICS_FILE, "ab", buffering=0)
 
 
-def write_rows(metrics: IO[str], rows: list[dict[str, Any]]) -> None:
-    for row in rows:
-        metrics.write(json.dumps(row) + "\n")
-    metrics.flush()
+def write_rows(metrics: IO[bytes], rows: list[dict[str, Any]]) -> None:
+    """Appends `rows` whole or not at all: a failed write is cut back, so the file never ends mid-line."""
+    start = metrics.tell()
+    data = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows).encode()
+    try:
+        written = 0
+        while written < len(data):
+            written += metrics.write(data[written:])
+    except OSError:
+        metrics.truncate(start)
+        raise
 
 
-def sync(metrics: IO[str]) -> int:
+@contextlib.contextmanager
+def hold_lock(directory: Path) -> Iterator[None]:
+    """One writer per directory: an advisory lock on `directory`/.lock (created with the
+    directory), which the kernel releases when the process ends however it ends. A second
+    writer gets UsageError naming the holder's PID."""
+    directory.mkdir(parents=True, exist_ok=True)
+    descriptor = os.open(directory / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(descriptor, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise UsageError(
+                f"{directory} is being written by another process (PID {holder}); wait for it to end or choose another directory"
+            ) from None
+        os.ftruncate(descriptor, 0)
+        os.pwrite(descriptor, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(descriptor)
+
+
+def sync(metrics: IO[bytes]) -> int:
     """Forces metrics.jsonl to disk and returns its size, for a checkpoint's record."""
     os.fsync(metrics.fileno())
     return metrics.tell()

@@ -16,6 +16,9 @@ import contextlib
 import dataclasses
 import itertools
 import math
+import os
+import shutil
+import sys
 import time
 from importlib import metadata
 from pathlib import Path
@@ -26,13 +29,15 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import envs, ppo
-from rpo_jax.checkpoint import CheckpointMismatch, Checkpointer
+from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
-from rpo_jax.errors import Interrupted, UsageError
-from rpo_jax.rundir import RunDir, sync, write_rows
+from rpo_jax.errors import Diverged, Interrupted, UsageError
+from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 from rpo_jax.scores import tail_mean
 
 CHECKPOINTS_PER_RUN = 10
+# jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
+SEED_LIMIT = 2**32
 # The plan's fields that config.json records and a resumed run reads back.
 PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every")
 
@@ -82,23 +87,55 @@ def new_plan(
     sweep: Sequence[str] = (), log_every: int | None = None, checkpoint_every: int | None = None,
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
-    config.validate()
-    envs.env_spec(env)  # an unknown name is refused here, before anything is written
-    if num_seeds < 1:
-        raise UsageError(f"--num-seeds must be >= 1, got {num_seeds}")
-    if log_every is not None and log_every < 1:
-        raise UsageError(f"--log-every must be >= 1, got {log_every}")
-    if checkpoint_every is not None and checkpoint_every < 0:
-        raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {checkpoint_every}")
+    check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
     if not RunDir(out).is_new():
         raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
-    parse_sweeps(sweep, config)
+    check_writable(out)
     run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
         log_every=log_every or max(1, config.num_updates // 100),
         checkpoint_every=run_steps // CHECKPOINTS_PER_RUN if checkpoint_every is None else checkpoint_every,
     )  # fmt: skip
+
+
+def check_plan(
+    env: str, config: Config, seed: int, num_seeds: int, sweep: Sequence[str], log_every: int | None,
+    checkpoint_every: int | None,
+) -> None:  # fmt: skip
+    """Refuses, as UsageError, every bad part of a plan but its directory: what `new_plan` checks
+    first, and what an experiment checks for all its runs before it writes anything."""
+    config.validate()
+    envs.env_spec(env)  # an unknown name is refused here, before anything is written
+    if num_seeds < 1:
+        raise UsageError(f"--num-seeds must be >= 1, got {num_seeds}")
+    check_seeds(seed, num_seeds)
+    if log_every is not None and log_every < 1:
+        raise UsageError(f"--log-every must be >= 1, got {log_every}")
+    if checkpoint_every is not None and checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {checkpoint_every}")
+    parse_sweeps(sweep, config)
+
+
+def check_seeds(seed: int, num_seeds: int) -> None:
+    """Refuses seeds outside the PRNG key's range [0, 2**32), which would train another seed's run."""
+    if not 0 <= seed or seed + num_seeds > SEED_LIMIT:
+        raise UsageError(
+            f"--seed must give seeds in [0, 2**32 - 1 = {SEED_LIMIT - 1}] (the PRNG key's range), "
+            f"got seeds {seed} to {seed + num_seeds - 1}"
+        )
+
+
+def check_writable(out: Path) -> None:
+    """Refuses an --out that cannot be created: under a file, or in a directory this process
+    cannot write (a read-only file system)."""
+    ancestor = out.absolute()
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise UsageError(f"--out {out}: {ancestor} is a file, not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise UsageError(f"--out {out}: {ancestor} is not writable (read-only file system or no permission)")
 
 
 def resumed_plan(out: Path) -> RunPlan:
@@ -108,11 +145,17 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: no config.json there; give a directory written by rpo_jax.train")
     if run_dir.is_finished():
         raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
-    saved = run_dir.read_config()
-    plan = saved["plan"]
+    try:
+        saved = run_dir.read_config()
+        plan = {name: saved["plan"][name] for name in PLAN_FIELDS}
+        config = Config.from_dict(saved["config"])
+    except UsageError as error:
+        raise UsageError(f"--resume {out}: {error}") from None
+    except (KeyError, TypeError) as error:
+        raise UsageError(f"--resume {out}: config.json was not written by rpo_jax.train (its plan lacks {error})") from None
     return RunPlan(
-        out=out, config=Config.from_dict(saved["config"]), resuming=True,
-        **{name: tuple(plan[name]) if name == "sweep" else plan[name] for name in PLAN_FIELDS},
+        out=out, config=config, resuming=True,
+        **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
 
 
@@ -130,6 +173,8 @@ def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]
             axes[name] = [float(v) for v in values.split(",")]
         except ValueError:
             raise UsageError(f"--sweep {spec}: values must be numbers separated by commas") from None
+        if len(set(axes[name])) < len(axes[name]):
+            raise UsageError(f"--sweep {spec}: a value is given twice; give each once")
     grid = [dict(zip(axes, point)) for point in itertools.product(*axes.values())]
     for point in grid:
         try:
@@ -196,20 +241,46 @@ class Compiled:
     trainer: ppo.Trainer
     state: ppo.TrainState
     record: dict[str, Any]  # the checkpoint's: updates done, metrics.jsonl's size, train seconds
-    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, ppo.Metrics]]
+    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
     chunk: int
     compile_seconds: float
 
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
-    """Trains every run of `plan` and returns the summary (also written to summary.json)."""
+    """Trains every run of `plan` and returns the summary (also written to summary.json).
+
+    One process at a time writes a run directory (`rundir.hold_lock`). A new run that fails
+    before its first checkpoint leaves nothing to resume, so its directory is removed and the
+    same command can run again; after a checkpoint, and after Ctrl-C, `--resume` continues it."""
     grid = parse_sweeps(plan.sweep, plan.config)
-    swept = list(grid[0])
     env = envs.make_env(plan.env)
+    existed = plan.out.exists()
+    with hold_lock(plan.out):
+        if not plan.resuming and not plan.run_dir.is_new():
+            raise UsageError(f"--out {plan.out} was written by another process meanwhile; choose a new one")
+        if plan.resuming and plan.run_dir.is_finished():
+            raise UsageError(f"--resume {plan.out}: that run has already finished (summary.json exists)")
+        try:
+            with _interruptible(plan.out), _out_of_memory_refused():
+                return train_locked(plan, env, grid, sinks, progress)
+        except (Diverged, UsageError, OSError) as error:
+            if plan.resuming or plan.run_dir.has_checkpoint():
+                raise
+            shutil.rmtree(plan.out)
+            if existed:  # the user's own empty directory stays
+                plan.out.mkdir()
+            if isinstance(error, OSError):
+                raise
+            raise type(error)(f"{error}; {plan.out} removed (no checkpoint to resume)") from None
+
+
+def train_locked(
+    plan: RunPlan, env: envs.Env, grid: list[dict[str, float]], sinks: Sequence[Sink], progress: ProgressFn | None
+) -> dict[str, Any]:
+    swept = list(grid[0])
     runs = describe_runs(plan, grid)
     run_dir = plan.run_dir
     if not plan.resuming:
-        run_dir.create()
         run_dir.write_config(config_record(plan, runs, swept, env.spec))
     compiled = compile_runs(plan, env, runs)
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
@@ -232,6 +303,20 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     return {"out": str(plan.out), **summary}
 
 
+@contextlib.contextmanager
+def _out_of_memory_refused() -> Iterator[None]:
+    """The device running out of memory, as the one-line error of a run too large for it."""
+    try:
+        yield
+    except jax.errors.JaxRuntimeError as error:
+        if "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        detail = str(error).strip().splitlines()[0][:200]
+        raise UsageError(
+            f"out of memory on {jax.devices()[0].device_kind} ({detail}); lower --num-envs, --num-seeds or the sweep"
+        ) from None
+
+
 def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Compiled:
     """The trainer, the initial or restored state of every run, and the compiled chunk."""
     config = plan.config
@@ -251,21 +336,24 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Co
         if env.spec.runs_on_host:
             # The simulators died with the interrupted process and no checkpoint holds them.
             state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
-    run_chunk = jax.jit(jax.vmap(lambda s: trainer.scan_updates(s, chunk))).lower(abstract_state).compile()
+    run_chunk = jax.jit(jax.vmap(lambda s: trainer.scan_diagnosed_updates(s, chunk))).lower(abstract_state).compile()
     return Compiled(trainer, state, record, run_chunk, chunk, time.perf_counter() - start)
 
 
 def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
-    """The last checkpoint's state and record, or None when the run was stopped before its first."""
+    """The last checkpoint that restores, with its record, or None when the run was stopped
+    before its first. Each damaged checkpoint passed over is reported in one line."""
     checkpointer = Checkpointer(plan.run_dir.checkpoints)
+    skipped: list[str] = []
     try:
-        if checkpointer.latest_update() is None:
-            return None
-        return checkpointer.restore(abstract_state)
-    except CheckpointMismatch as error:
+        restored = checkpointer.restore_latest(abstract_state, skipped)
+    except (CheckpointMismatch, CheckpointDamaged) as error:
         raise UsageError(f"--resume {plan.out}: {error}") from None
     finally:
         checkpointer.close()
+    for line in skipped:
+        print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
+    return restored
 
 
 def logged_rows(
@@ -279,7 +367,8 @@ def logged_rows(
             continue
         for index, run in enumerate(runs):
             values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
-            values["env_steps"] = int(values["env_steps"])
+            # Counted here in Python's integers: the trainer's int32 count wraps after 2**31 steps.
+            values["env_steps"] = update * plan.config.batch_size
             values["episodes_finished"] = int(values["episodes_finished"])
             rows.append({"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps})
     return rows
@@ -295,13 +384,18 @@ def train_chunks(
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
     train_start = time.perf_counter() - record["train_seconds"]
     steps_before, resumed_at, last_checkpoint = record["update"] * config.batch_size, time.perf_counter(), record["update"]
-    with plan.run_dir.append_metrics() as metrics_file, _interruptible(plan.out):
+    with plan.run_dir.append_metrics() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
-            state, metrics = compiled.run_chunk(state)
-            metrics = jax.device_get(metrics)
+            state, (metrics, diagnostics) = compiled.run_chunk(state)
+            metrics, diagnostics = jax.device_get((metrics, diagnostics))
             updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
             sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
+            nonfinite = first_nonfinite(metrics, diagnostics)
+            if nonfinite:
+                # The updates before it are finite and logged; it and the state after it are not kept.
+                write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
+                raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
             rows = logged_rows(plan, runs, metrics, first_update, chunk, sps)
             write_rows(metrics_file, rows)
             for row in rows:
@@ -321,6 +415,36 @@ def train_chunks(
     if checkpointer:
         checkpointer.close()
     return state, time.perf_counter() - train_start
+
+
+def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
+    """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
+    or inf, naming what went non-finite first: observation, reward, loss (any logged metric) or
+    parameters. Arrays are [runs, updates of the chunk]."""
+    found = {
+        "observation": diagnostics.nonfinite_observations > 0,
+        "reward": diagnostics.nonfinite_rewards > 0,
+        "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
+        "parameters": diagnostics.nonfinite_parameters > 0,
+    }
+    bad = np.any(list(found.values()), axis=0)
+    if not bad.any():
+        return None
+    offset = int(np.argmax(bad.any(axis=0)))
+    run = int(np.argmax(bad[:, offset]))
+    return offset, run, [name for name, flags in found.items() if flags[run, offset]]
+
+
+def divergence_message(
+    plan: RunPlan, runs: list[dict[str, Any]], first_update: int, nonfinite: tuple[int, int, list[str]], last_checkpoint: int
+) -> str:  # fmt: skip
+    offset, run, quantities = nonfinite
+    hparams = ", ".join(f"{name}={runs[run]['hparams'][name]:g}" for name in SWEEPABLE)
+    kept = f"the last checkpoint (update {last_checkpoint}) is finite and kept" if last_checkpoint else "no checkpoint written"
+    return (
+        f"training diverged: non-finite {', '.join(quantities)} at update {first_update + offset + 1} in run {run} "
+        f"(seed {runs[run]['seed']}, {hparams}); stopped before writing it, {kept}"
+    )
 
 
 def summarise(

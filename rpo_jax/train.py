@@ -27,7 +27,7 @@ from typing import Any, Literal, Sequence
 import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
-from rpo_jax.errors import Interrupted, UsageError, usage_failure
+from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
 
 PROG = "python -m rpo_jax.train"
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -94,7 +94,11 @@ def given_fields(argv: Sequence[str]) -> set[str]:
 
 def one_line(message: str) -> str:
     """tyro's boxed error as one line: its title, its first section and any suggestion."""
-    lines = [line.strip(" │╭╮╰╯─") for line in message.splitlines()]
+    # tyro draws its box in Unicode on a terminal and in ASCII (rules of dashes) elsewhere.
+    lines = [line.strip(" │╭╮╰╯─|") for line in message.splitlines()]
+    lines = ["" if set(line) <= {"-"} else line for line in lines]
+    if len(lines) > 2 and lines[0] and not lines[1]:  # the ASCII box rules its title off from the text
+        del lines[1]
     sections: list[list[str]] = [[]]
     for line in lines:
         if line.startswith("For full helptext"):
@@ -180,8 +184,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         summary = train_with_display(plan, args.quiet)
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
+    except Diverged as error:
+        return diverged_failure(error)
     except Interrupted as interrupted:
         print(f"interrupted; continue with: {PROG} --resume {interrupted}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:  # before the run directory was made: nothing to continue
+        print("interrupted; nothing was written", file=sys.stderr)
         return 130
     print_summary(summary)
     return 0

@@ -163,7 +163,7 @@ def test_report_of_one_training_run_draws_its_curves(run_dir, tmp_path):
 
     assert report.main([str(run_dir), "--out", str(tmp_path)]) == 0
     text = (tmp_path / "report.md").read_text()
-    assert "# Run: cartpole rpo" in text and "| rpo | 2 |" in text
+    assert "# Report: run of cartpole rpo" in text and "| rpo | 2 |" in text
     for name in ("return-entropy.png", "losses.png"):
         figure = tmp_path / "figures" / name
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"(figures/{name})" in text

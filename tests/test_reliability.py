@@ -1,0 +1,476 @@
+"""Nothing trained on silently, nothing overwritten, nothing corrupted: non-finite guards, one
+writer per run directory, checkpoint fallback, and one-line errors for bad input and failing
+file systems. In process where possible, on a point mass that compiles in seconds."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import io
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from point_mass import PointMass
+
+from rpo_jax import envs, evaluate, experiment, report, runner, train
+from rpo_jax.checkpoint import CheckpointDamaged, Checkpointer
+from rpo_jax.config import Config
+from rpo_jax.envs import registry
+from rpo_jax.errors import Diverged, UsageError
+from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir, hold_lock, write_rows
+
+NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
+TINY = Config(
+    num_envs=NUM_ENVS, num_steps=NUM_STEPS, num_minibatches=2, update_epochs=1, total_timesteps=NUM_ENVS * NUM_STEPS * UPDATES
+)
+TINY_FLAGS_ANY_ENV = [
+    "--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1",
+    "--total-timesteps", str(TINY.total_timesteps), "--quiet",
+]  # fmt: skip
+TINY_FLAGS = ["--env", "test/point_mass", *TINY_FLAGS_ANY_ENV]
+POISONED_AFTER = 200  # steps per environment; the first non-finite number falls in update 13
+FIRST_BAD_UPDATE = POISONED_AFTER // NUM_STEPS + 1
+
+
+class Poisoned:
+    """8 point masses of which the fourth returns a NaN observation or reward after 200 steps,
+    as a simulator that blows up in one environment would."""
+
+    num_envs = NUM_ENVS
+
+    def __init__(self, quantity: str) -> None:
+        self.inner, self.quantity = envs.vectorize(PointMass(), NUM_ENVS), quantity
+        self.spec = dataclasses.replace(PointMass.spec, name=f"nan_{quantity}")
+
+    def reset(self, key):
+        state, ts = self.inner.reset(key)
+        return (state, jnp.zeros((), jnp.int32)), ts
+
+    def step(self, state, action):
+        inner, steps = state
+        inner, ts = self.inner.step(inner, action)
+        poisoned = (steps + 1 > POISONED_AFTER) & (jnp.arange(NUM_ENVS) == 3)
+        if self.quantity == "observation":
+            ts = ts.replace(obs=jnp.where(poisoned[:, None], jnp.nan, ts.obs))
+        else:
+            ts = ts.replace(reward=jnp.where(poisoned, jnp.nan, ts.reward))
+        return (inner, steps + 1), ts
+
+
+@pytest.fixture(scope="module", autouse=True)
+def test_envs():
+    saved = dict(registry._REGISTRY)
+    envs.register_env("test/point_mass", PointMass, PointMass.spec)
+    for quantity in ("observation", "reward"):
+        envs.register_env(f"test/nan_{quantity}", lambda q=quantity: Poisoned(q), Poisoned(quantity).spec)
+    yield
+    registry._REGISTRY.clear()
+    registry._REGISTRY.update(saved)
+
+
+def one_line(capsys) -> str:
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A finished point-mass run, checkpointed after every update (the last two kept)."""
+    out = tmp_path_factory.mktemp("finished") / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 0
+    return out
+
+
+@pytest.fixture
+def unfinished(finished, tmp_path) -> Path:
+    """`finished` as if killed after its last checkpoint (update 19 of 20)."""
+    out = tmp_path / "unfinished"
+    shutil.copytree(finished, out)
+    (out / SUMMARY_FILE).unlink()
+    (out / PARAMS_FILE).unlink()
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input: one line, exit code 2, nothing written
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--rpo-alpha", "inf"], "rpo_alpha must be a finite number, got inf"),
+        (["--ent-coef", "inf"], "ent_coef must be a finite number"),
+        (["--lr", "nan"], "lr must be a finite number, got nan"),
+        (["--vf-coef", "inf"], "vf_coef must be a finite number"),
+        (["--reward-scale", "inf"], "reward_scale must be a finite number"),
+        (["--kl-target", "inf"], "kl_target must be a finite number"),
+        (["--adam-eps", "inf"], "adam_eps must be a finite number"),
+        (["--algo", "rad", "--aug-high", "inf"], "aug_high must be a finite number"),
+        (["--sweep", "rpo_alpha=0.5,inf"], "--sweep: rpo_alpha must be a finite number, got inf"),
+        (["--sweep", "lr=0.001,nan"], "--sweep: lr must be a finite number, got nan"),
+        (["--sweep", "rpo_alpha=0.5,0.5"], "a value is given twice"),
+        (["--seed", "4294967297"], "seeds in [0, 2**32 - 1"),
+        (["--seed", "4294967295", "--num-seeds", "2"], "got seeds 4294967295 to 4294967296"),
+        (["--seed", "-1"], "the PRNG key's range"),
+        (["--num-envs", "65536", "--num-steps", "32768", "--num-minibatches", "1"], "must be below 2**31"),
+        (["--total-timesteps", str(2**31 * 128)], "must be below 2**31 = 2147483648 updates"),
+        (["--num-env", "8"], "Unrecognized options: --num-env"),
+        (["--env", "test/point_mas"], "did you mean test/point_mass"),  # the last --env given counts
+        (["--algo", "ppo", "--aug-low", "0.5"], "--aug-low applies to --algo rad or drac only, not ppo"),
+        (["--algo", "rpo", "--aug-high", "2"], "--aug-high applies to --algo rad or drac only, not rpo"),
+    ],
+)
+def test_bad_values_are_refused_before_anything_is_written(tmp_path, capsys, args, message):
+    out = tmp_path / "never"
+    assert train.main([*TINY_FLAGS, *args, "--out", str(out)]) == 2
+    line = one_line(capsys)
+    assert line.startswith("error: ") and message in line, line
+    assert len(line) < 300
+    assert not out.exists()
+
+
+def test_an_out_under_a_file_or_not_writable_is_refused(tmp_path, capsys, monkeypatch):
+    (tmp_path / "file").write_text("mine")
+    assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "file" / "run")]) == 2
+    assert "is a file, not a directory" in one_line(capsys)
+    assert (tmp_path / "file").read_text() == "mine"
+    # Root may write anywhere but on a read-only file system, where access(2) says no.
+    monkeypatch.setattr(runner.os, "access", lambda path, mode: False)
+    assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "ro" / "run")]) == 2
+    assert "is not writable (read-only file system or no permission)" in one_line(capsys)
+
+
+def test_env_steps_are_counted_in_64_bits():
+    config = dataclasses.replace(TINY, num_envs=2**16, num_steps=2**12, num_minibatches=1, total_timesteps=2**28 * 64)
+    plan = runner.RunPlan(Path("x"), "cartpole", None, 1, 1, (), config, log_every=1, checkpoint_every=0)
+    metrics = {name: np.zeros((1, 1)) for name in ("env_steps", "episode_return", "episodes_finished")}
+    metrics["env_steps"][:] = -(2**31)  # what the trainer's int32 count holds at 2**31 steps
+    runs = [{"seed": 1, "hparams": {}}]
+    [row] = runner.logged_rows(plan, runs, SimpleNamespace(**metrics), first_update=16, chunk=1, sps=0.0)
+    assert row["env_steps"] == 17 * 2**28 > 2**32
+
+
+# --------------------------------------------------------------------------------------------
+# Non-finite numbers stop the run
+
+
+@pytest.mark.parametrize("quantity", ["observation", "reward"])
+def test_an_environment_giving_nan_stops_the_run_and_keeps_the_finite_checkpoints(tmp_path, capsys, quantity):
+    out = tmp_path / "run"
+    flags = ["--env", f"test/nan_{quantity}", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2", "--seed", "5"]
+    assert train.main([*flags, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 1
+    line = one_line(capsys)
+    assert f"non-finite {quantity}" in line and f"at update {FIRST_BAD_UPDATE} in run 0 (seed 5, " in line, line
+    assert f"the last checkpoint (update {FIRST_BAD_UPDATE - 1}) is finite and kept" in line
+    assert not (out / SUMMARY_FILE).exists() and not (out / PARAMS_FILE).exists()
+    rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]  # strict JSON: no NaN
+    assert max(row["update"] for row in rows) == FIRST_BAD_UPDATE - 1
+    assert all(np.isfinite(value) for row in rows for value in row.values() if isinstance(value, float))
+    checkpointer = Checkpointer(RunDir(out).checkpoints)
+    assert checkpointer.updates() == [FIRST_BAD_UPDATE - 1, FIRST_BAD_UPDATE - 2]
+    checkpointer.close()
+    # Resumed, it fails the same way from its last finite checkpoint.
+    assert train.main(["--resume", str(out), "--quiet"]) == 1
+    assert f"at update {FIRST_BAD_UPDATE} in run 0" in one_line(capsys)
+
+
+def test_a_diverging_loss_stops_the_run_and_removes_a_run_without_checkpoints(tmp_path, capsys):
+    out = tmp_path / "run"
+    flags = [*TINY_FLAGS, "--lr", "1e3", "--lr-schedule", "constant", "--checkpoint-every", "0"]
+    assert train.main([*flags, "--out", str(out)]) == 1
+    line = one_line(capsys)
+    assert line.startswith("error: training diverged: non-finite ") and "no checkpoint written" in line, line
+    assert "loss" in line or "parameters" in line
+    assert line.endswith(f"{out} removed (no checkpoint to resume)")
+    assert not out.exists()  # the same command, corrected, can use --out again
+
+
+def test_first_nonfinite_names_the_first_update_and_run():
+    metrics = SimpleNamespace(policy_loss=np.zeros((3, 4)), value_loss=np.zeros((3, 4)))
+    metrics.policy_loss[2, 1] = np.nan
+    zeros = np.zeros((3, 4), int)
+    parameters = zeros.copy()
+    parameters[1, 2] = 5
+    diagnostics = SimpleNamespace(nonfinite_observations=zeros, nonfinite_rewards=zeros, nonfinite_parameters=parameters)
+    assert runner.first_nonfinite(metrics, diagnostics) == (1, 2, ["loss"])
+    metrics.policy_loss[:] = 0
+    assert runner.first_nonfinite(metrics, diagnostics) == (2, 1, ["parameters"])
+
+
+# --------------------------------------------------------------------------------------------
+# One writer per run directory
+
+
+def test_a_second_writer_is_refused_naming_the_holder(tmp_path, capsys, unfinished):
+    import os
+
+    with hold_lock(unfinished):
+        assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+        assert f"is being written by another process (PID {os.getpid()})" in one_line(capsys)
+        out = tmp_path / "new"
+        with hold_lock(out):  # a writer that has just made the directory
+            assert train.main([*TINY_FLAGS, "--out", str(out)]) == 2
+            assert f"PID {os.getpid()}" in one_line(capsys)
+        assert out.is_dir()  # the other writer's directory, not ours to remove
+    assert not (unfinished / SUMMARY_FILE).exists()
+    experiment_out = tmp_path / "experiment"
+    with hold_lock(experiment_out):
+        assert experiment.main(["ppo-vs-rpo", "--envs", "test/point_mass", "--out", str(experiment_out), "--quiet"]) == 2
+        assert "being written by another process" in one_line(capsys)
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints and metrics.jsonl on resume
+
+
+def damage(checkpoint: Path, how: str) -> None:
+    state = checkpoint / "state"
+    data = [path for path in state.rglob("*") if path.is_file() and path.parent.name == "d"]
+    if how == "truncated":
+        for path in data:
+            path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif how == "manifest":
+        (state / "manifest.ocdbt").write_bytes(b"overwritten")
+    elif how == "flipped":
+        for path in data:
+            raw = bytearray(path.read_bytes())
+            raw[len(raw) // 2] ^= 0xFF
+            path.write_bytes(bytes(raw))
+    elif how == "deleted":
+        shutil.rmtree(state)
+    elif how == "metadata":
+        (state / "_METADATA").unlink()
+
+
+DAMAGES = ["truncated", "manifest", "flipped", "deleted", "metadata"]
+
+
+def abstract(tree):
+    return jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype), tree)
+
+
+@pytest.mark.parametrize("how", DAMAGES)
+def test_a_damaged_checkpoint_is_reported_and_the_previous_one_restored(tmp_path, how):
+    states = {update: {"w": jnp.full((10, 100), float(update)), "step": jnp.asarray(update, jnp.int32)} for update in (1, 2)}
+    checkpointer = Checkpointer(tmp_path)
+    for update, state in states.items():
+        checkpointer.save(update, state, {"update": update})
+    checkpointer.close()
+    damage(tmp_path / "2", how)
+    checkpointer = Checkpointer(tmp_path)
+    with pytest.raises(CheckpointDamaged, match="checkpoint at update 2 is damaged"):
+        checkpointer.restore(abstract(states[1]))
+    skipped: list[str] = []
+    restored, record = checkpointer.restore_latest(abstract(states[1]), skipped)
+    assert record == {"update": 1} and np.array_equal(restored["w"], states[1]["w"])
+    assert len(skipped) == 1 and "update 2 is damaged" in skipped[0] and "\n" not in skipped[0]
+    # Set aside, so that the run can write its update 2 again.
+    assert checkpointer.updates() == [1] and (tmp_path / "damaged-2").is_dir()
+    checkpointer.save(2, states[2], {"update": 2})
+    checkpointer.close()
+
+
+def test_resume_falls_back_to_the_previous_checkpoint_and_ends_as_uninterrupted(finished, unfinished, capsys):
+    damage(unfinished / "checkpoints" / str(UPDATES - 1), "truncated")
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    warning = one_line(capsys)
+    assert warning.startswith(f"warning: --resume {unfinished}: checkpoint at update {UPDATES - 1} is damaged"), warning
+    assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert (unfinished / METRICS_FILE).read_text().count("\n") == (finished / METRICS_FILE).read_text().count("\n")
+
+
+def test_resume_with_every_checkpoint_damaged_is_refused_in_one_line(unfinished, capsys):
+    for update in (UPDATES - 1, UPDATES - 2):
+        damage(unfinished / "checkpoints" / str(update), "deleted")
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert "no checkpoint restores: checkpoint at update 19 is damaged" in line and "update 18" in line, line
+    assert (unfinished / "checkpoints" / str(UPDATES - 1)).is_dir()  # nothing moved when nothing restores
+
+
+@pytest.mark.parametrize("cut", ["shorter", "missing"])
+def test_metrics_shorter_than_the_checkpoint_is_refused_not_padded(unfinished, capsys, cut):
+    metrics = unfinished / METRICS_FILE
+    if cut == "shorter":
+        metrics.write_bytes(metrics.read_bytes()[:100])
+    else:
+        metrics.unlink()
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert "but the checkpoint counts on its first" in line, line
+    assert (metrics.stat().st_size == 100) if cut == "shorter" else not metrics.exists()
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("{", "config.json is not valid JSON"),
+        ('{"hello": 1}', "was not written by rpo_jax.train (no env, config, runs, env_spec, plan)"),
+        (None, "its plan lacks"),
+        ("unknown-field", "not an rpo_jax config: unknown field(s) colour"),
+        ("bad-value", "lr must be a finite number"),
+    ],
+)
+def test_resume_of_a_foreign_or_broken_config_is_refused(unfinished, capsys, content, message):
+    path = unfinished / CONFIG_FILE
+    record = json.loads(path.read_text())
+    if content is None:
+        del record["plan"]["seed"]
+    elif content == "unknown-field":
+        record["config"]["colour"] = "red"
+    elif content == "bad-value":
+        record["config"]["lr"] = 1e400  # json.dumps writes Infinity
+    path.write_text(json.dumps(record) if content in (None, "unknown-field", "bad-value") else content)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert message in line and line.startswith(f"error: --resume {unfinished}"), line
+
+
+# --------------------------------------------------------------------------------------------
+# Failures of the machine: out of memory, a full disk, Ctrl-C
+
+
+def test_out_of_memory_is_one_line_and_leaves_out_free(tmp_path, capsys, monkeypatch):
+    def exhausted(*args):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 98.00GiB.")
+
+    monkeypatch.setattr(runner, "compile_runs", exhausted)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 2
+    line = one_line(capsys)
+    assert "out of memory on" in line and "98.00GiB" in line and "lower --num-envs" in line, line
+    assert not out.exists()
+
+
+def test_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
+    def full(metrics, rows):
+        raise OSError(errno.ENOSPC, "No space left on device", metrics.name)
+
+    monkeypatch.setattr(runner, "write_rows", full)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", "0"]) == 2
+    assert one_line(capsys) == f"error: No space left on device: {out / METRICS_FILE}"
+
+
+def test_rows_are_appended_whole_or_not_at_all(tmp_path):
+    class FillsUp(io.FileIO):
+        def write(self, data):  # room for 10 more bytes
+            if self.tell() + len(data) > 60:
+                written = super().write(data[: 60 - self.tell()])
+                if not written:
+                    raise OSError(errno.ENOSPC, "No space left on device")
+                return written
+            return super().write(data)
+
+    path = tmp_path / METRICS_FILE
+    path.write_text('{"update": 1, "value": 0.5}\n' * 2)  # 56 bytes
+    size = path.stat().st_size
+    with FillsUp(path, "a") as metrics:
+        with pytest.raises(OSError):
+            write_rows(metrics, [{"update": 3, "value": 0.25}])
+    assert path.stat().st_size == size and path.read_text().endswith("\n")
+    with open(path, "ab", buffering=0) as metrics, pytest.raises(ValueError, match="JSON compliant"):
+        write_rows(metrics, [{"value": float("nan")}])
+
+
+def test_ctrl_c_during_compilation_exits_130_with_the_resume_hint(tmp_path, capsys, monkeypatch):
+    def interrupted(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "compile_runs", interrupted)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 130
+    assert one_line(capsys) == f"interrupted; continue with: python -m rpo_jax.train --resume {out}"
+    assert RunDir(out).has_config()
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate, report and experiment
+
+
+@pytest.mark.parametrize(
+    "damage_run, args, message",
+    [
+        (lambda out: (out / PARAMS_FILE).write_bytes(b""), [], "params.msgpack is damaged"),
+        (lambda out: (out / PARAMS_FILE).write_bytes((out / PARAMS_FILE).read_bytes()[:500]), [], "params.msgpack is damaged"),
+        (lambda out: (out / CONFIG_FILE).unlink(), [], "has no config.json"),
+        (lambda out: (out / CONFIG_FILE).write_text('{"env": "cartpole"'), [], "config.json is not valid JSON"),
+        (
+            lambda out: (out / CONFIG_FILE).write_text((out / CONFIG_FILE).read_text().replace('"test/point_mass"', '"nope"')),
+            [], "unknown env 'nope'",
+        ),
+        (lambda out: None, ["--video", "no/such/dir/x.mp4"], "the directory"),
+        (lambda out: None, ["--seed", str(2**32)], "--seed must be in [0, 2**32 - 1]"),
+    ],
+)  # fmt: skip
+def test_evaluate_refuses_damaged_runs_in_one_line(finished, tmp_path, capsys, damage_run, args, message):
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    damage_run(out)
+    assert evaluate.main([str(out), *args]) == 2
+    line = one_line(capsys)
+    assert message in line, line
+
+
+def results_dir(tmp_path: Path) -> Path:
+    directory = tmp_path / "results"
+    directory.mkdir()
+    row = {name: 1.0 for name in report.COLUMNS}
+    row.update(experiment="x", env="cartpole", variant="rpo", algo="rpo", dist="gaussian")
+    report.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
+    return directory
+
+
+def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys):
+    directory = results_dir(tmp_path)
+    results = directory / report.RESULTS_FILE
+    good = results.read_text()
+    results.write_text(good.replace(",policy_entropy", ",entropy"))
+    assert report.main([str(directory)]) == 2
+    assert "column(s) policy_entropy missing" in one_line(capsys)
+    lines = good.splitlines()
+    results.write_text("\n".join([lines[0], lines[1].rsplit(",", 1)[0] + ",abc", *lines[2:]]) + "\n")
+    assert report.main([str(directory)]) == 2
+    assert "line 2: learning_rate must be a number, got 'abc'" in one_line(capsys)
+    results.write_text(good)
+
+    (tmp_path / "file").write_text("mine")
+    assert report.main([str(directory), "--out", str(tmp_path / "file")]) == 2
+    assert "is a file; give a directory" in one_line(capsys)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.md").write_text("my own notes\n")
+    assert report.main([str(directory), "--out", str(mine)]) == 2
+    assert "holds files the report did not write (report.md)" in one_line(capsys)
+    assert (mine / "report.md").read_text() == "my own notes\n"
+    # Its own report it rewrites, in a new directory or next to the results.
+    assert report.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert report.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert report.main([str(directory)]) == 0
+
+
+def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
+    out = tmp_path / "experiment"
+    base = ["ppo-vs-rpo", "--out", str(out), "--seeds", "1", "--quiet"]
+    assert experiment.main([*base, "--envs", "test/point_mass", "test/point_mass"]) == 2
+    assert "--envs names test/point_mass more than once" in one_line(capsys)
+    assert experiment.main([*base, "--envs", "test/point_mass", "--timesteps", "10"]) == 2
+    assert "total_timesteps must be at least one batch" in one_line(capsys)
+    assert experiment.main([*base, "--envs", "test/point_mas"]) == 2
+    assert "did you mean test/point_mass" in one_line(capsys)
+    assert not out.exists()
+
+
+def test_library_errors_are_usage_errors():
+    with pytest.raises(UsageError, match="finite"):
+        Config(lr=float("inf")).validate()
+    with pytest.raises(UsageError, match="unknown field"):
+        Config.from_dict({"colour": 1})
+    assert issubclass(Diverged, Exception) and not issubclass(Diverged, UsageError)
