@@ -211,10 +211,18 @@ def run_experiment(args: argparse.Namespace) -> Path:
             plan = job_plan(definition, env, job, directory)
             print(f"{prefix}: training", flush=True)
         summary = train_with_display(plan, args.quiet)
-        print(f"{prefix}: final return {summary['final_return_mean']:.2f}, {summary['sps']:,.0f} steps/s", flush=True)
+        print(progress_line(prefix, job, summary), flush=True)
         report.write_results(out, collect_rows(out, definition, jobs))
     report.build(out, [out])
     return out
+
+
+def progress_line(prefix: str, job: Job, summary: dict) -> str:
+    """One run's result: each variant's final return (a sweep's variants are not averaged)."""
+    finals = ", ".join(
+        f"{job.variant(point['hparams'])} {point['final_return_mean']:.2f}" for point in summary["grid"]
+    )
+    return f"{prefix}: final return {finals}, {summary['sps']:,.0f} steps/s"
 
 
 def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:

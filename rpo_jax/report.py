@@ -24,7 +24,7 @@ import numpy as np
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, usage_failure
 from rpo_jax.files import write_text
-from rpo_jax.scores import kept_fraction, tail_mean
+from rpo_jax.scores import kept_fraction, tail_mean, with_spread
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -122,11 +122,6 @@ def normalised_scores(summary: dict[tuple[str, str], dict[str, float]]) -> dict[
         for variant, mean in means.items():
             scores[env, variant] = (mean - low) / (high - low) if high > low else 1.0
     return scores
-
-
-def _with_spread(value: str, spread: str, seeds: int) -> str:
-    # One seed has no spread to show: a "± 0.00" would read as a measured one.
-    return value + spread if seeds > 1 else value
 
 
 def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
@@ -270,14 +265,14 @@ def _best(summary: dict, cells: dict, env: str, field: str) -> str | None:
 def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
     """The final return, final entropy and late-training tables with their explanations."""
     returns = {
-        key: _with_spread(f"{s['return_mean']:.2f}", f" ± {s['return_std']:.2f}", s["seeds"]) for key, s in summary.items()
+        key: with_spread(f"{s['return_mean']:.2f}", f" ± {s['return_std']:.2f}", s["seeds"]) for key, s in summary.items()
     }
     entropies = {
-        key: _with_spread(f"{s['entropy_mean']:.2f}", f" ± {s['entropy_std']:.2f}", s["seeds"])
+        key: with_spread(f"{s['entropy_mean']:.2f}", f" ± {s['entropy_std']:.2f}", s["seeds"])
         for key, s in summary.items()
     }
     kept = {
-        key: _with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
+        key: with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
         for key, s in summary.items()
         if not math.isnan(s["kept"])
     }

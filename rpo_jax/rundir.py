@@ -8,6 +8,7 @@
 | `params.msgpack` | actor and critic parameters and observation statistics, one slice per run |
 | `tensorboard/` | TensorBoard events, one directory per run |
 | `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.checkpoint`) |
+| `wandb/` | W&B's files of `--track wandb` (offline runs for `wandb sync`) |
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ SUMMARY_FILE = "summary.json"
 PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
+WANDB_DIR = "wandb"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,6 +41,10 @@ class RunDir:
     @property
     def tensorboard(self) -> Path:
         return self.path / TENSORBOARD_DIR
+
+    @property
+    def wandb(self) -> Path:
+        return self.path / WANDB_DIR
 
     def is_new(self) -> bool:
         """Nothing there yet, or an empty directory."""
