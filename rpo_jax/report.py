@@ -34,7 +34,10 @@ METRIC_COLUMNS = (
     "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
     "policy_loss", "value_loss", "approx_kl", "clip_fraction", "action_std", "learning_rate",
 )  # fmt: skip
-COLUMNS = ID_COLUMNS + METRIC_COLUMNS
+# The deterministic policy's return on fresh episodes, in the rows of runs evaluated during
+# training (--eval-every); empty elsewhere, and absent from results written before it existed.
+EVAL_COLUMN = "eval_return"
+COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
 TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
 
 NORMALISATION_RULE = (
@@ -56,7 +59,7 @@ def score_range(env: str) -> tuple[float, float] | None:
 def write_results(out: Path, rows: Iterable[dict]) -> None:
     """results.csv through a temporary file, so a crash never leaves half of it."""
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", restval="")
     writer.writeheader()
     writer.writerows(rows)
     write_text(out / RESULTS_FILE, buffer.getvalue())
@@ -69,9 +72,13 @@ def read_results(directory: Path) -> list[dict]:
     with open(path, newline="") as file:
         rows = list(csv.DictReader(file))
     for row in rows:
-        for name in COLUMNS:
+        for name in ID_COLUMNS + METRIC_COLUMNS:
             if name not in TEXT_COLUMNS:
                 row[name] = float(row[name])
+        if row.get(EVAL_COLUMN):
+            row[EVAL_COLUMN] = float(row[EVAL_COLUMN])
+        else:
+            row.pop(EVAL_COLUMN, None)
     return rows
 
 
@@ -98,7 +105,11 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict[str, float]]:
         entropies = [tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()]
         length = min(len(run) for run in seeds.values())
         mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
+        evaluations = [[row[EVAL_COLUMN] for row in run if EVAL_COLUMN in row] for run in seeds.values()]
+        last = [run_evaluations[-1] for run_evaluations in evaluations if run_evaluations]
+        evaluated = {"eval_mean": float(np.mean(last)), "eval_std": float(np.std(last))} if all(evaluations) else {}
         summary[key] = {
+            **evaluated,
             "return_mean": float(np.mean(returns)),
             "return_std": float(np.std(returns)),
             "entropy_mean": float(np.mean(entropies)),
@@ -298,6 +309,27 @@ def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[
         "window is not positive.",
         "",
         *_table(envs, variants, kept, {env: _best(summary, kept, env, "kept") for env in envs}),
+        "",
+        *_eval_table(summary, envs, variants),
+    ]
+
+
+def _eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """The evaluation return's table, where some variant was evaluated during training."""
+    evaluated = {
+        key: with_spread(f"{s['eval_mean']:.2f}", f" ± {s['eval_std']:.2f}", s["seeds"])
+        for key, s in summary.items()
+        if "eval_mean" in s
+    }
+    if not evaluated:
+        return []
+    return [
+        "## Evaluation return",
+        "",
+        "Mean ± std over seeds of the last evaluation during training (--eval-every): the deterministic policy's "
+        "return on fresh episodes with the environment's own rewards; blank where a variant was not evaluated.",
+        "",
+        *_table(envs, variants, evaluated, {env: _best(summary, evaluated, env, "eval_mean") for env in envs}),
         "",
     ]
 
