@@ -148,12 +148,11 @@ class Config:
         return self.total_timesteps // self.batch_size
 
     def hyperparameters(self) -> dict[str, float]:
-        """The sweepable values as the algorithm trains with them: an algorithm that does not
-        perturb the location trains with rpo_alpha 0."""
-        values = {name: float(getattr(self, name)) for name in SWEEPABLE}
-        if not self.algorithm.perturbs_location:
-            values["rpo_alpha"] = 0.0
-        return values
+        """The sweepable values as the algorithm trains with them: a field that the algorithm
+        does not read is 0 (ppo trains with rpo_alpha 0, rpo with drac_coef 0), so that
+        config.json's runs and metrics.jsonl's rows never show a value that had no effect."""
+        unread = set(ALGORITHM_FIELDS) - set(self.algorithm.reads)
+        return {name: 0.0 if name in unread else float(getattr(self, name)) for name in SWEEPABLE}
 
     def validate(self) -> "Config":
         """Raises UsageError (a ValueError) naming the first invalid field and what is allowed."""

@@ -17,44 +17,33 @@ from __future__ import annotations
 
 import copy
 import sys
+import warnings
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Sequence
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
-from rpo_jax import envs
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, os_failure, usage_failure
-from rpo_jax.policy import load_policy
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
+# JAX, MuJoCo and the policy are imported by the functions that use them, so that --help is quick.
+if TYPE_CHECKING:
+    import jax
+    import numpy as np
 
-def episode_returns(
-    env: envs.Env, policy: Callable[..., jax.Array], episodes: int, key: jax.Array, deterministic: bool
-) -> np.ndarray:
+    from rpo_jax import envs
+    from rpo_jax.policy import Policy
+
+
+def episode_returns(env: envs.Env, policy: Policy, episodes: int, key: jax.Array, deterministic: bool) -> np.ndarray:
     """The undiscounted return of the first episode of each of `episodes` parallel copies."""
-    vec = envs.EpisodeStatistics(envs.vectorize(env, episodes))
+    import functools
 
-    def run(key):
-        reset_key, act_key = jax.random.split(key)
-        state, ts = vec.reset(reset_key)
+    import jax
+    import numpy as np
 
-        def step(carry, key):
-            state, obs, returns, finished = carry
-            state, ts = vec.step(state, policy(obs, key, deterministic))
-            done = ts.terminated | ts.truncated
-            returns = jnp.where(done & ~finished, ts.info["episode_return"], returns)
-            return (state, ts.obs, returns, finished | done), None
+    from rpo_jax.policy import first_episode_returns
 
-        zeros = jnp.zeros(episodes)
-        carry = (state, ts.obs, zeros, zeros.astype(bool))
-        (_, _, returns, finished), _ = jax.lax.scan(
-            step, carry, jax.random.split(act_key, env.spec.max_episode_steps)
-        )
-        return returns, finished
-
+    run = functools.partial(first_episode_returns, env, policy, episodes, deterministic=deterministic)
     returns, finished = jax.jit(run)(key)
     if not bool(finished.all()):
         raise RuntimeError(f"{env.spec.name}: an episode outlived max_episode_steps = {env.spec.max_episode_steps}")
@@ -62,11 +51,11 @@ def episode_returns(
 
 
 def record_video(
-    env: envs.Env, policy: Callable[..., jax.Array], path: Path, key: jax.Array, deterministic: bool,
+    env: envs.Env, policy: Policy, path: Path, key: jax.Array, deterministic: bool,
     width: int = 640, height: int = 480,
 ) -> tuple[float, int]:  # fmt: skip
     """Renders one episode to `path` (MP4); returns its return and length."""
-    import mujoco
+    from rpo_jax import envs
 
     try:
         import imageio.v2 as imageio
@@ -74,6 +63,21 @@ def record_video(
         raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
     if not isinstance(env, envs.Renderable):
         raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
+    positions, total = episode_positions(env, policy, key, deterministic)
+    frames = render(env, positions, width, height)
+    with warnings.catch_warnings():
+        # imageio-ffmpeg starts its encoder with a preexec_fn, which makes Python run JAX's
+        # at-fork hook and its warning about forking a multithreaded process; the child execs
+        # ffmpeg at once and runs no JAX, so the warning does not apply.
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+        imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
+    return total, len(positions) - 1
+
+
+def episode_positions(env: envs.Env, policy: Policy, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
+    """The joint positions of one episode, from its reset on, and its return."""
+    import jax
+    import numpy as np
 
     reset, step = jax.jit(env.reset), jax.jit(env.step)
     act = jax.jit(lambda obs, key: policy(obs, key, deterministic))
@@ -86,6 +90,12 @@ def record_video(
         state, ts = step(state, act(ts.obs, act_key))
         positions.append(np.asarray(env.qpos(state)))
         total, length = total + float(ts.reward), length + 1
+    return positions, total
+
+
+def render(env: envs.Env, positions: list[np.ndarray], width: int, height: int) -> list[np.ndarray]:
+    """One offscreen frame per joint position."""
+    import mujoco
 
     # A copy lit by a brighter headlight (models written for simulation often have no lights),
     # seen from closer than MuJoCo's default framing of the whole model.
@@ -110,8 +120,7 @@ def record_video(
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera)
             frames.append(renderer.render())
-    imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
-    return total, length
+    return frames
 
 
 def build_parser() -> ArgumentParser:
@@ -142,6 +151,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         saved = run_dir.read_config()
         if not 0 <= args.run < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
+        import jax
+
+        from rpo_jax import envs
+        from rpo_jax.policy import load_policy
+
         try:
             env = envs.make_env(saved["env"])
         except UsageError as error:

@@ -11,7 +11,8 @@ under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md`
 
 Started again with the same command, an experiment skips the runs that finished and resumes
 the unfinished one from its last checkpoint, so a crash loses at most one checkpoint interval
-of one run (--checkpoint-every, by default a tenth of the run) and the compile time.
+of one run (--checkpoint-every; by default a tenth of a run of 5M steps or more, and no
+checkpoint in shorter runs, which start again) and the compile time.
 """
 
 from __future__ import annotations
@@ -133,6 +134,13 @@ def build_parser() -> ArgumentParser:
         help="config for every environment (default: rl_games' for the IsaacGym tasks, paper for the rest)",
     )  # fmt: skip
     parser.add_argument("--checkpoint-every", type=int, metavar="STEPS", help="as for rpo_jax.train")
+    parser.add_argument("--eval-every", type=int, default=0, metavar="STEPS", help="as for rpo_jax.train (default 0: never)")
+    parser.add_argument("--eval-episodes", type=int, default=10, metavar="N", help="as for rpo_jax.train (default 10)")
+    parser.add_argument("--track", choices=["wandb"], help="also log to W&B, grouped by NAME/ENV/JOB")
+    parser.add_argument("--wandb-project", default="rpo_jax", help="W&B project (default rpo_jax)")
+    parser.add_argument("--wandb-entity", help="W&B entity (default: W&B's)")
+    parser.add_argument("--wandb-mode", choices=["online", "offline"], help="W&B mode (default: WANDB_MODE, else online)")
+    parser.add_argument("--no-compile-cache", action="store_true", help="as for rpo_jax.train")
     parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
     parser.add_argument("--quiet", action="store_true", help="no progress display inside each run")
     return parser
@@ -160,6 +168,7 @@ def resolve(args: argparse.Namespace) -> dict:
         "num_envs": args.num_envs,
         "preset": args.preset,
         "checkpoint_every": args.checkpoint_every,
+        **({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes} if args.eval_every else {}),
         "jobs": [dataclasses.asdict(job) for job in experiment.jobs],
     }
     if args.num_steps is not None:  # recorded only when given, so that older experiments continue
@@ -222,6 +231,7 @@ def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
     return runner.new_plan(
         out=directory, env=env, config=config, preset=preset, seed=1, num_seeds=definition["seeds"],
         sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
+        eval_every=definition.get("eval_every", 0), eval_episodes=definition.get("eval_episodes", 10),
     )  # fmt: skip
 
 
@@ -242,7 +252,7 @@ def run_jobs(args: argparse.Namespace, out: Path, definition: dict, jobs: Sequen
     """Every (environment, job) run not finished yet, resumed where it started; results.csv
     after each."""
     from rpo_jax import runner
-    from rpo_jax.train import train_with_display
+    from rpo_jax.train import TrainArgs, train_with_display
 
     total = len(definition["envs"]) * len(jobs)
     for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
@@ -259,9 +269,21 @@ def run_jobs(args: argparse.Namespace, out: Path, definition: dict, jobs: Sequen
             shutil.rmtree(directory, ignore_errors=True)
             plan = job_plan(definition, env, job, directory)
             print(f"{prefix}: training", flush=True)
-        summary = train_with_display(plan, args.quiet)
-        print(f"{prefix}: final return {summary['final_return_mean']:.2f}, {summary['sps']:,.0f} steps/s", flush=True)
+        tools = TrainArgs(
+            track=args.track, wandb_project=args.wandb_project, wandb_entity=args.wandb_entity, wandb_mode=args.wandb_mode,
+            wandb_group=f"{args.name}/{env}/{job.name}", compile_cache=not args.no_compile_cache,
+        )  # fmt: skip
+        summary = train_with_display(plan, args.quiet, tools)
+        print(progress_line(prefix, job, summary), flush=True)
         report.write_results(out, collect_rows(out, definition, jobs))
+
+
+def progress_line(prefix: str, job: Job, summary: dict) -> str:
+    """One run's result: each variant's final return (a sweep's variants are not averaged)."""
+    finals = ", ".join(
+        f"{job.variant(point['hparams'])} {point['final_return_mean']:.2f}" for point in summary["grid"]
+    )
+    return f"{prefix}: final return {finals}, {summary['sps']:,.0f} steps/s"
 
 
 def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:
@@ -284,6 +306,7 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
                         **{name: metrics[name] for name in SWEEPABLE},
                         "seed": metrics["seed"],
                         **{name: metrics[name] for name in report.METRIC_COLUMNS},
+                        **({report.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
                     }
                 )
     return rows

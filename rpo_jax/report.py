@@ -33,7 +33,7 @@ from rpo_jax.files import write_text
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
 )  # fmt: skip
-from rpo_jax.scores import kept_fraction, tail_mean
+from rpo_jax.scores import kept_fraction, tail_mean, with_spread
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -44,13 +44,16 @@ METRIC_COLUMNS = (
     "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
     "policy_loss", "value_loss", "approx_kl", "clip_fraction", "action_std", "learning_rate",
 )  # fmt: skip
-COLUMNS = ID_COLUMNS + METRIC_COLUMNS
+# The deterministic policy's return on fresh episodes, in the rows of runs evaluated during
+# training (--eval-every); empty elsewhere, and absent from results written before it existed.
+EVAL_COLUMN = "eval_return"
+COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
 TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
 
 def write_results(out: Path, rows: Iterable[dict]) -> None:
     """results.csv through a temporary file, so a crash never leaves half of it."""
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", restval="")
     writer.writeheader()
     writer.writerows(rows)
     write_text(out / RESULTS_FILE, buffer.getvalue())
@@ -62,12 +65,14 @@ def read_results(directory: Path) -> list[dict]:
         raise UsageError(f"{directory} has no {RESULTS_FILE}; give a directory written by rpo_jax.experiment")
     with open(path, newline="") as file:
         reader = csv.DictReader(file)
-        missing = [name for name in COLUMNS if name not in (reader.fieldnames or ())]
+        missing = [name for name in ID_COLUMNS + METRIC_COLUMNS if name not in (reader.fieldnames or ())]
         if missing:
             raise UsageError(f"{path}: column(s) {', '.join(missing)} missing; rpo_jax.experiment writes {', '.join(COLUMNS)}")
         rows = list(reader)
     for line, row in enumerate(rows, start=2):
-        for name in COLUMNS:
+        if not row.get(EVAL_COLUMN):
+            row.pop(EVAL_COLUMN, None)
+        for name in (*ID_COLUMNS, *METRIC_COLUMNS, *([EVAL_COLUMN] if EVAL_COLUMN in row else [])):
             if name not in TEXT_COLUMNS:
                 try:
                     row[name] = float(row[name])
@@ -135,7 +140,10 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
         length = min(len(run) for run in seeds.values())
         mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
         returns, entropy = _spread(finals), _spread(entropies)
+        evaluations = [[row[EVAL_COLUMN] for row in run if EVAL_COLUMN in row] for run in seeds.values()]
+        evaluated = _spread(np.array([run[-1] for run in evaluations])) if all(evaluations) else {}
         summary[key] = {
+            **{f"eval_{name}": value for name, value in evaluated.items()},
             "finals": finals,
             **{f"return_{name}": value for name, value in returns.items()},
             **{f"entropy_{name}": value for name, value in entropy.items()},
@@ -163,10 +171,8 @@ def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, s
 
 def _cell(stats: dict, name: str, digits: int = 2) -> str:
     # One seed has no spread to show: a "± 0.00" would read as a measured one.
-    mean = f"{stats[f'{name}_mean']:.{digits}f}"
-    if stats["seeds"] < 2:
-        return mean
-    return f"{mean} ± {stats[f'{name}_std']:.{digits}f} [{stats[f'{name}_low']:.{digits}f}, {stats[f'{name}_high']:.{digits}f}]"
+    mean, std, low, high = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std", "low", "high"))
+    return with_spread(mean, f" ± {std} [{low}, {high}]", stats["seeds"])
 
 
 def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
@@ -189,7 +195,7 @@ def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[
     returns = {key: _cell(stats, "return") for key, stats in summary.items()}
     entropies = {key: _cell(stats, "entropy") for key, stats in summary.items()}
     kept = {
-        key: f"{s['kept']:.3f}" + (f" ({s['kept_worst_seed']:.3f})" if s["seeds"] > 1 else "")
+        key: with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
         for key, s in summary.items()
         if not math.isnan(s["kept"])
     }
@@ -217,6 +223,24 @@ def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[
         "window is not positive.",
         "",
         *_table(envs, variants, kept, {env: _best(summary, kept, env, "kept") for env in envs}),
+        "",
+        *_eval_table(summary, envs, variants),
+    ]
+
+
+def _eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """The evaluation return's table, where some variant was evaluated during training."""
+    evaluated = {key: _cell(stats, "eval") for key, stats in summary.items() if "eval_mean" in stats}
+    if not evaluated:
+        return []
+    return [
+        "## Evaluation return",
+        "",
+        "The last evaluation during training (--eval-every): the deterministic policy's return on fresh "
+        "episodes with the environment's own rewards, mean ± sample std over seeds [95% CI]; blank where "
+        "a variant was not evaluated.",
+        "",
+        *_table(envs, variants, evaluated, {env: _best(summary, evaluated, env, "eval_mean") for env in envs}),
         "",
     ]
 

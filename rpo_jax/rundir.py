@@ -9,6 +9,7 @@
 | `tensorboard/` | TensorBoard events, one directory per run |
 | `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.checkpoint`) |
 | `.lock` | the PID of the process writing the run; locked while it does (`hold_lock`) |
+| `wandb/` | W&B's files of `--track wandb` (offline runs for `wandb sync`) |
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
 LOCK_FILE = ".lock"
+WANDB_DIR = "wandb"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +46,10 @@ class RunDir:
     @property
     def tensorboard(self) -> Path:
         return self.path / TENSORBOARD_DIR
+
+    @property
+    def wandb(self) -> Path:
+        return self.path / WANDB_DIR
 
     def is_new(self) -> bool:
         """Nothing there yet, or an empty directory (but for the lock file of a writer that stopped)."""

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
@@ -32,14 +33,22 @@ from rpo_jax import envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.errors import Diverged, Interrupted, UsageError
+from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 from rpo_jax.scores import tail_mean
 
+# Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
+# steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
+# 2-core CPU: ten of them are about 5% of a 1M-step Cartpole run there (2 min at about 20,000
+# steps/s), which a crash would rarely repay, and under 1% from 5M steps on.
 CHECKPOINTS_PER_RUN = 10
+CHECKPOINT_MIN_RUN_STEPS = 5_000_000
 # jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
 SEED_LIMIT = 2**32
-# The plan's fields that config.json records and a resumed run reads back.
-PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every")
+# The plan's fields that config.json records and a resumed run reads back; runs recorded before
+# evaluation during training existed lack the eval fields and read back with evaluation off.
+PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes")
+OPTIONAL_PLAN_FIELDS = ("eval_every", "eval_episodes")
 
 
 class Sink(Protocol):
@@ -71,6 +80,8 @@ class RunPlan:
     config: Config
     log_every: int
     checkpoint_every: int  # env steps per run between checkpoints; 0: none
+    eval_every: int = 0  # env steps per run between evaluations of the deterministic policy; 0: none
+    eval_episodes: int = 10
     resuming: bool = False
 
     @property
@@ -85,9 +96,12 @@ class RunPlan:
 def new_plan(
     out: Path, env: str, config: Config, preset: str | None = None, seed: int = 1, num_seeds: int = 1,
     sweep: Sequence[str] = (), log_every: int | None = None, checkpoint_every: int | None = None,
+    eval_every: int = 0, eval_episodes: int = 10,
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
     check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
+    if eval_every < 0 or eval_episodes < 1:
+        raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
     if not RunDir(out).is_new():
         raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
     check_writable(out)
@@ -95,8 +109,15 @@ def new_plan(
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
         log_every=log_every or max(1, config.num_updates // 100),
-        checkpoint_every=run_steps // CHECKPOINTS_PER_RUN if checkpoint_every is None else checkpoint_every,
+        checkpoint_every=default_checkpoint_every(run_steps) if checkpoint_every is None else checkpoint_every,
+        eval_every=eval_every, eval_episodes=eval_episodes,
     )  # fmt: skip
+
+
+def default_checkpoint_every(run_steps: int) -> int:
+    """Environment steps per run between checkpoints when none is asked for: a tenth of the run
+    from CHECKPOINT_MIN_RUN_STEPS steps per run on, else 0 (none)."""
+    return run_steps // CHECKPOINTS_PER_RUN if run_steps >= CHECKPOINT_MIN_RUN_STEPS else 0
 
 
 def check_plan(
@@ -147,7 +168,7 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
     try:
         saved = run_dir.read_config()
-        plan = {name: saved["plan"][name] for name in PLAN_FIELDS}
+        plan = {name: saved["plan"][name] for name in PLAN_FIELDS if name in saved["plan"] or name not in OPTIONAL_PLAN_FIELDS}
         config = Config.from_dict(saved["config"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: {error}") from None
@@ -199,16 +220,24 @@ def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
     return "-".join([f"{name}={run['hparams'][name]:g}" for name in swept] + [f"seed_{run['seed']}"])
 
 
-def chunk_length(num_updates: int, target_chunks: int = 50) -> int:
-    """The largest divisor of num_updates not above num_updates / target_chunks: every chunk
-    has the same length, so the chunk program compiles once."""
-    limit = max(1, num_updates // target_chunks)
+def chunk_length(num_updates: int, target_chunks: int = 50, at_most: int | None = None) -> int:
+    """The largest divisor of num_updates not above num_updates / target_chunks (nor `at_most`,
+    the updates between evaluations): every chunk has the same length, so the chunk program
+    compiles once."""
+    limit = max(1, min(num_updates // target_chunks, at_most or num_updates))
     return max(d for d in range(1, limit + 1) if num_updates % d == 0)
 
 
 def versions() -> dict[str, str]:
+    """The versions of the packages that decide a run's numbers. distrax's distributions are
+    TensorFlow Probability's, which distrax requires as the nightly build `tfp-nightly`; either
+    distribution name is recorded, whichever is installed."""
     names = ("jax", "jaxlib", "flax", "optax", "distrax", "mujoco", "mujoco-mjx", "brax", "numpy")
-    return {name: metadata.version(name) for name in names}
+    found = {name: metadata.version(name) for name in names}
+    for name in ("tfp-nightly", "tensorflow-probability"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            found[name] = metadata.version(name)
+    return found
 
 
 def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str], env_spec: Any) -> dict[str, Any]:
@@ -224,6 +253,24 @@ def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str
         "plan": {"algo": plan.config.algo, **{name: getattr(plan, name) for name in PLAN_FIELDS}},
         "versions": versions(),
     }
+
+
+def compile_cache_dir() -> Path:
+    """The default of JAX's persistent compilation cache: $XDG_CACHE_HOME/rpo_jax/jax, where
+    XDG_CACHE_HOME defaults to ~/.cache. A second identical run reads its programs from there
+    instead of compiling them again."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rpo_jax" / "jax"
+
+
+def use_compile_cache(directory: Path | None) -> None:
+    """Turns JAX's persistent compilation cache on in `directory`, or off with None. JAX keeps
+    programs that took at least a second to compile, keyed by the program, the compiler
+    options and the machine, so a cached one is the same program and gives the same numbers."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    jax.config.update("jax_compilation_cache_dir", None if directory is None else str(directory))
+    jax.config.update("jax_enable_compilation_cache", directory is not None)
+    compilation_cache.reset_cache()  # JAX decides once per process whether to use it; decide again
 
 
 @contextlib.contextmanager
@@ -244,6 +291,13 @@ class Compiled:
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
     chunk: int
     compile_seconds: float
+    # (state, keys) -> each run's mean deterministic return over eval_episodes; None: evaluation off
+    run_eval: Callable[[ppo.TrainState, jax.Array], jax.Array] | None = None
+    eval_keys: jax.Array | None = None
+
+    def eval_updates(self, plan: RunPlan) -> int:
+        """Updates between evaluations."""
+        return max(1, plan.eval_every // plan.config.batch_size)
 
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
@@ -288,9 +342,8 @@ def train_locked(
     kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"])
     for sink in sinks:
         sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
-    logged_returns: list[list[float]] = [[] for _ in runs]
-    for row in kept_rows:
-        logged_returns[row["run"]].append(row["episode_return"])
+    logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
+    record_returns(kept_rows, logged_returns)
     try:
         state, train_seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
     finally:
@@ -321,7 +374,8 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Co
     """The trainer, the initial or restored state of every run, and the compiled chunk."""
     config = plan.config
     trainer = ppo.make_trainer(config, env)
-    chunk = chunk_length(config.num_updates)
+    eval_updates = max(1, plan.eval_every // config.batch_size) if plan.eval_every else None
+    chunk = chunk_length(config.num_updates, at_most=eval_updates)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
@@ -337,7 +391,33 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Co
             # The simulators died with the interrupted process and no checkpoint holds them.
             state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
     run_chunk = jax.jit(jax.vmap(lambda s: trainer.scan_diagnosed_updates(s, chunk))).lower(abstract_state).compile()
-    return Compiled(trainer, state, record, run_chunk, chunk, time.perf_counter() - start)
+    run_eval = compile_evaluation(plan, env, trainer, abstract_state, keys) if plan.eval_every else None
+    # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.
+    eval_keys = jax.vmap(lambda key: jax.random.fold_in(key, EVAL_STREAM))(keys)
+    return Compiled(trainer, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
+
+
+EVAL_STREAM = 0x5EED
+
+
+def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer, abstract_state: Any, keys: jax.Array) -> Callable:
+    """The evaluation of every run, compiled: the deterministic policy (normalised as in
+    training, with the statistics of the moment) on `eval_episodes` fresh copies of the
+    environment, scored by the environment's own rewards (no scaling or normalisation). For a
+    host-side environment the copies are a pool of their own simulators."""
+    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
+
+    def evaluate(state: ppo.TrainState, key: jax.Array) -> jax.Array:
+        stats = trainer.observation_statistics(state)
+
+        def policy(obs: jax.Array, key: jax.Array, deterministic: bool) -> jax.Array:
+            return act(trainer.config, trainer.actor, state.params["actor"], stats, low, high, obs, key, deterministic)
+
+        key = jax.random.fold_in(key, state.update)
+        returns, _ = first_episode_returns(env, policy, plan.eval_episodes, key, deterministic=True)
+        return returns.mean()
+
+    return jax.jit(jax.vmap(evaluate)).lower(abstract_state, jax.eval_shape(lambda k: k, keys)).compile()
 
 
 def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
@@ -357,13 +437,18 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
 
 
 def logged_rows(
-    plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float
-) -> list[dict[str, Any]]:
-    """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run."""
+    plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float,
+    eval_returns: np.ndarray | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
+    With `eval_returns` (one per run, after the chunk's last update) that update is logged too,
+    its rows with `eval_return`; rows of runs without evaluation have no such field."""
     rows = []
+    last = first_update + chunk
     for offset in range(chunk):
         update = first_update + offset + 1
-        if update % plan.log_every and update != plan.config.num_updates:
+        evaluated = eval_returns is not None and update == last
+        if update % plan.log_every and update != plan.config.num_updates and not evaluated:
             continue
         for index, run in enumerate(runs):
             values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
@@ -371,12 +456,25 @@ def logged_rows(
             values["env_steps"] = update * plan.config.batch_size
             values["episodes_finished"] = int(values["episodes_finished"])
             rows.append({"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps})
+            if evaluated:
+                rows[-1]["eval_return"] = float(eval_returns[index])
     return rows
+
+
+def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int) -> np.ndarray | None:
+    """Each run's evaluation return when an evaluation falls due in the chunk that ended at
+    `first_update + chunk` (and after the last update), else None."""
+    if compiled.run_eval is None:
+        return None
+    every, done = compiled.eval_updates(plan), first_update + compiled.chunk
+    if done // every == first_update // every and done != plan.config.num_updates:
+        return None
+    return np.asarray(jax.device_get(compiled.run_eval(state, compiled.eval_keys)))
 
 
 def train_chunks(
     plan: RunPlan, compiled: Compiled, runs: list[dict[str, Any]], sinks: Sequence[Sink],
-    progress: ProgressFn | None, logged_returns: list[list[float]],
+    progress: ProgressFn | None, logged_returns: dict[str, list[list[float]]],
 ) -> tuple[ppo.TrainState, float]:  # fmt: skip
     """The loop over chunks; returns the final state and the training seconds."""
     config, record, chunk, state = plan.config, compiled.record, compiled.chunk, compiled.state
@@ -396,10 +494,12 @@ def train_chunks(
                 # The updates before it are finite and logged; it and the state after it are not kept.
                 write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
                 raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
-            rows = logged_rows(plan, runs, metrics, first_update, chunk, sps)
+            eval_start = time.perf_counter()
+            eval_returns = evaluate_after_chunk(plan, compiled, state, first_update)
+            resumed_at += time.perf_counter() - eval_start  # steps/s counts training only
+            rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns)
             write_rows(metrics_file, rows)
-            for row in rows:
-                logged_returns[row["run"]].append(row["episode_return"])
+            record_returns(rows, logged_returns)
             for sink in sinks:
                 sink.write(rows)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
@@ -447,26 +547,30 @@ def divergence_message(
     )
 
 
+def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]]) -> None:
+    """Adds the rows' training returns and evaluation returns, where a row has one, to each run's."""
+    for row in rows:
+        for name, returns in logged_returns.items():
+            if name in row:
+                returns[row["run"]].append(row[name])
+
+
 def summarise(
-    plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: list[list[float]],
+    plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]],
     compile_seconds: float, train_seconds: float,
 ) -> dict[str, Any]:  # fmt: skip
-    """summary.json's content; adds each run's final return to `runs`."""
+    """summary.json's content; adds each run's final return (and, with evaluation, its last
+    evaluation return) to `runs`."""
     config = plan.config
-    for run, returns in zip(runs, logged_returns):
-        run["final_return"] = tail_mean(returns)
+    names = ["final_return", "eval_return"] if plan.eval_every else ["final_return"]
+    for index, run in enumerate(runs):
+        run["final_return"] = tail_mean(logged_returns["episode_return"][index])
+        if plan.eval_every:
+            run["eval_return"] = logged_returns["eval_return"][index][-1]
     grid_summary = []
     for index, point in enumerate(grid):
-        finals = [run["final_return"] for run in runs[index * plan.num_seeds : (index + 1) * plan.num_seeds]]
-        grid_summary.append(
-            {
-                "hparams": point,
-                "seeds": list(plan.seeds),
-                "final_return_mean": float(np.mean(finals)),
-                "final_return_std": float(np.std(finals)),
-            }
-        )
-    all_finals = [run["final_return"] for run in runs]
+        seeds = runs[index * plan.num_seeds : (index + 1) * plan.num_seeds]
+        grid_summary.append({"hparams": point, "seeds": list(plan.seeds), **spread(seeds, names)})
     env_steps = config.num_updates * config.batch_size
     return {
         "env": plan.env,
@@ -474,8 +578,7 @@ def summarise(
         "dist": config.dist,
         "num_seeds": plan.num_seeds,
         "total_timesteps": env_steps,
-        "final_return_mean": float(np.mean(all_finals)),
-        "final_return_std": float(np.std(all_finals)),
+        **spread(runs, names),
         "grid": grid_summary,
         "runs": runs,
         "compile_seconds": compile_seconds,
@@ -483,3 +586,9 @@ def summarise(
         "sps": env_steps * len(runs) / train_seconds,
         "device": str(jax.devices()[0].device_kind),
     }
+
+
+def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float]:
+    """`NAME_mean` and `NAME_std` over `runs` of each run's NAME."""
+    values = {name: [run[name] for run in runs] for name in names}
+    return {f"{name}_{kind}": float(fn(v)) for name, v in values.items() for kind, fn in (("mean", np.mean), ("std", np.std))}

@@ -21,3 +21,9 @@ def kept_fraction(values: Sequence[float]) -> float:
     windows = np.convolve(values, np.ones(window) / window, mode="valid")
     best = windows.max()
     return float(windows[-1] / best) if best > 0 else math.nan
+
+
+def with_spread(value: str, spread: str, seeds: int) -> str:
+    """`value` followed by `spread` (" ± 0.12") where there are several seeds. One seed has no
+    spread to show: a "± 0.00" would read as a measured one."""
+    return value + spread if seeds > 1 else value

@@ -1,9 +1,10 @@
-"""Where a run's progress and logged rows go besides metrics.jsonl: TensorBoard and the terminal.
-Both are passed to `runner.train` by the command line (see `runner.Sink` and `runner.ProgressFn`)."""
+"""Where a run's progress and logged rows go besides metrics.jsonl: TensorBoard and the terminal
+(W&B: `rpo_jax.tracking`). They are passed to `runner.train` by the command line (see `runner.Sink` and `runner.ProgressFn`)."""
 
 from __future__ import annotations
 
 import shutil
+import time
 from typing import Any
 
 from rpo_jax.ppo import Metrics
@@ -11,22 +12,49 @@ from rpo_jax.rundir import RunDir
 
 # The trainer's metrics less the step counter, which is TensorBoard's x axis.
 TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name != "env_steps")
+HPARAMS_METRICS = ("train/episode_return", "eval/episode_return")
+
+
+def run_hyperparameters(record: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
+    """One run's settings as a tracker shows them: the config, with the run's own values of the
+    sweepable fields (0 for those its algorithm does not read), its seed and the environment.
+    Values that are neither numbers nor strings (hidden_sizes) as text."""
+    values = {"env": record["env"], **record["config"], **run["hparams"], "seed": run["seed"]}
+    return {name: value if isinstance(value, (bool, int, float, str)) else str(value) for name, value in values.items()}
+
+
+def point_label(record: dict[str, Any], run: dict[str, Any]) -> str:
+    """The sweep point of a run ("rpo_alpha=0.1"; empty without a sweep): what its seeds share."""
+    return "-".join(f"{name}={run['hparams'][name]:g}" for name in record["sweep"])
 
 
 class TensorBoardSink:
-    """TensorBoard events, one directory per run, rebuilt from the kept rows on resume."""
+    """TensorBoard events, one directory per run, rebuilt from the kept rows on resume: the
+    trainer's metrics and steps/s under train/, the evaluation return under eval/, and each
+    run's hyperparameters for TensorBoard's HParams view."""
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
         from tensorboardX import SummaryWriter
+        from tensorboardX.summary import hparams
 
         shutil.rmtree(run_dir.tensorboard, ignore_errors=True)
         self.writers = [SummaryWriter(str(run_dir.tensorboard / label)) for label in labels]
+        record = run_dir.read_config()
+        for writer, run in zip(self.writers, record["runs"]):
+            # The HParams view pairs these values with the runs' scalars of the tags named here.
+            summaries = hparams(run_hyperparameters(record, run), dict.fromkeys(HPARAMS_METRICS, 0.0))
+            for summary in summaries:
+                writer.file_writer.add_summary(summary)
         self.write(kept_rows)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
+            writer, step = self.writers[row["run"]], row["env_steps"]
             for name in TENSORBOARD_METRICS:
-                self.writers[row["run"]].add_scalar(f"train/{name}", row[name], row["env_steps"])
+                writer.add_scalar(f"train/{name}", row[name], step)
+            writer.add_scalar("train/sps", row["sps"], step)
+            if "eval_return" in row:
+                writer.add_scalar("eval/episode_return", row["eval_return"], step)
 
     def close(self) -> None:
         for writer in self.writers:
@@ -34,22 +62,33 @@ class TensorBoardSink:
 
 
 class ProgressDisplay:
-    """A live line in a terminal; otherwise a printed line every tenth of the run."""
+    """A live line in a terminal; otherwise a printed line every tenth of the run. From its
+    creation (before the environment is built and the program compiled) until the first chunk
+    is done it shows "compiling" with the seconds elapsed: live, ticking, in a terminal; as a
+    line at the start and one with the compile time otherwise."""
 
     def __init__(self, total_steps: int, quiet: bool) -> None:
         from rich.console import Console
-        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
         self.console = Console(stderr=True)
         self.quiet, self.total_steps, self.next_print = quiet, total_steps, 0.0
+        self.started, self.compiling = time.perf_counter(), True
         self.live = None
         if not quiet and self.console.is_terminal:
-            self.live = Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(), console=self.console)
-            self.task = self.live.add_task("compiling", total=total_steps)
-            self.live.start()
+            self.live = Progress(
+                TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=self.console
+            )  # fmt: skip
+            self.task = self.live.add_task("compiling...", total=total_steps)
+            self.live.start()  # refreshes on its own thread, so the elapsed time ticks while XLA compiles
+        elif not quiet:
+            self.console.print("compiling...", highlight=False)
 
     def __call__(self, steps: int, sps: float, episode_return: float, entropy: float) -> None:
         line = f"steps {steps:>11,}  sps {sps:>10,.0f}  return {episode_return:8.2f}  entropy {entropy:7.3f}"
+        if self.compiling and not self.quiet and not self.live:
+            self.console.print(f"compiled and first chunk done after {time.perf_counter() - self.started:.1f} s", highlight=False)
+        self.compiling = False
         if self.live:
             self.live.update(self.task, completed=steps, description=line)
         elif not self.quiet and steps >= self.next_print:

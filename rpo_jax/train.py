@@ -28,6 +28,7 @@ import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
+from rpo_jax.scores import with_spread
 
 PROG = "python -m rpo_jax.train"
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -56,7 +57,23 @@ class TrainArgs:
     log_every: int | None = None
     """write metrics every N updates; None: about 100 lines per seed"""
     checkpoint_every: int | None = None
-    """checkpoint every N environment steps per run; None: 10 per run; 0: never"""
+    """checkpoint every N environment steps per run; None: 10 per run for runs of 5M steps or more, else none; 0: never"""
+    eval_every: int = 0
+    """evaluate the deterministic policy every N env steps per run (in whole chunks of updates) and at the end; 0: never"""
+    eval_episodes: int = 10
+    """episodes per evaluation, on fresh environments with their own rewards"""
+    track: Literal["wandb"] | None = None
+    """also log to Weights & Biases (the wandb extra); TensorBoard events are always written"""
+    wandb_project: str = "rpo_jax"
+    """W&B project"""
+    wandb_entity: str | None = None
+    """W&B entity (team or user); None: W&B's default"""
+    wandb_mode: Literal["online", "offline"] | None = None
+    """offline: write under OUT/wandb for `wandb sync`; None: W&B's default (the WANDB_MODE variable, else online)"""
+    wandb_group: str | None = None
+    """W&B group of the runs; None: the output directory's name. Each sweep point's seeds form GROUP/POINT"""
+    compile_cache: bool = True
+    """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
     quiet: bool = False
@@ -114,6 +131,10 @@ def one_line(message: str) -> str:
     return re.sub(r"\s+", " ", text).strip() or "invalid arguments; see --help"
 
 
+# The flags of the tracker: how a process reports, not what the runs are, so --resume takes any.
+TRACKING_FIELDS = ("track", "wandb_project", "wandb_entity", "wandb_mode", "wandb_group")
+
+
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
     """Refuses flags that the chosen algorithm does not read."""
     check_applies(args.config.algo, sorted(given), lambda name: "--" + name.replace("_", "-"))
@@ -124,7 +145,7 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
     if args.out is not None and args.out.resolve() != args.resume.resolve():
         raise UsageError(f"--out {args.out} differs from --resume {args.resume}; a resumed run continues in its own directory")
     values = {**dataclasses.asdict(args), **dataclasses.asdict(args.config)}
-    for name in sorted(given - {"resume", "out", "quiet", "help", "config"}):
+    for name in sorted(given - {"resume", "out", "quiet", "help", "config", "compile_cache"} - set(TRACKING_FIELDS)):
         value, saved_value = values[name], saved[name]
         if isinstance(value, (tuple, list)):
             value, saved_value = list(value), list(saved_value)
@@ -148,17 +169,26 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     return runner.new_plan(
         out=out, env=args.env, config=args.config, preset=args.preset, seed=args.seed, num_seeds=args.num_seeds,
         sweep=args.sweep, log_every=args.log_every, checkpoint_every=args.checkpoint_every,
+        eval_every=args.eval_every, eval_episodes=args.eval_episodes,
     )  # fmt: skip
 
 
-def train_with_display(plan: Any, quiet: bool) -> dict[str, Any]:
-    """Runs `plan` with the TensorBoard sink and the progress display."""
+def train_with_display(plan: Any, quiet: bool, args: TrainArgs | None = None) -> dict[str, Any]:
+    """Runs `plan` with the TensorBoard sink, the progress display and what `args` asks for (its
+    tracker and compile cache; None: the defaults)."""
     from rpo_jax import runner
     from rpo_jax.sinks import ProgressDisplay, TensorBoardSink
 
+    args = args or TrainArgs()
     progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, quiet)
+    runner.use_compile_cache(runner.compile_cache_dir() if args.compile_cache else None)
+    sinks: list[Any] = [TensorBoardSink()]
+    if args.track == "wandb":
+        from rpo_jax.tracking import WandbSink
+
+        sinks.append(WandbSink(args.wandb_project, args.wandb_entity, args.wandb_mode, args.wandb_group))
     try:
-        return runner.train(plan, sinks=[TensorBoardSink()], progress=progress)
+        return runner.train(plan, sinks=sinks, progress=progress)
     finally:
         progress.close()
 
@@ -166,10 +196,13 @@ def train_with_display(plan: Any, quiet: bool) -> dict[str, Any]:
 def print_summary(summary: dict[str, Any]) -> None:
     for point in summary["grid"]:
         label = "".join(f" {k}={v:g}" for k, v in point["hparams"].items())
-        print(
-            f"{summary['env']} {summary['algo']}{label}: final return {point['final_return_mean']:.2f} "
-            f"± {point['final_return_std']:.2f} over {len(point['seeds'])} seed(s)"
-        )
+        seeds = len(point["seeds"])
+        final = with_spread(f"{point['final_return_mean']:.2f}", f" ± {point['final_return_std']:.2f}", seeds)
+        evaluated = ""
+        if "eval_return_mean" in point:
+            deterministic = with_spread(f"{point['eval_return_mean']:.2f}", f" ± {point['eval_return_std']:.2f}", seeds)
+            evaluated = f", deterministic eval return {deterministic}"
+        print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated} over {seeds} seed(s)")
     print(
         f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
         f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"
@@ -181,7 +214,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = parse_args(argv)
         plan = make_plan(args, argv)
-        summary = train_with_display(plan, args.quiet)
+        summary = train_with_display(plan, args.quiet, args)
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:

@@ -1,12 +1,14 @@
 """The registry: its static specs (what `python -m rpo_jax.envs` lists) equal those of the
 built environments, listing imports no simulator, and environments of one's own register."""
 
+import importlib.util
 import subprocess
 import sys
 
 import pytest
 
 from rpo_jax import envs
+from rpo_jax.envs.__main__ import EXTRAS, extras_lines
 
 SIMULATORS = ("mujoco", "brax", "envpool", "gymnax", "gymnasium", "gym", "pybullet", "pybullet_envs", "mujoco_playground")
 
@@ -54,11 +56,18 @@ def test_listing_imports_no_simulator():
     )
     result = run_module("-c", check)
     assert result.returncode == 0, result.stderr
-    table, note = result.stdout.split("\n\n")
+    table, note, extras = result.stdout.split("\n\n")
     names = [line.split()[0] for line in table.splitlines()[1:]]
     assert "gymnasium/<id>" in note and "package.module:factory" in note
     assert {"cartpole", "ballbalance", "brax/ant", "dmc/walker-walk"} <= set(names)
     assert tuple(names) == envs.env_names()
+    assert extras.splitlines() == extras_lines() and len(extras_lines()) == len(EXTRAS)
+
+
+def test_listing_names_a_missing_extra(monkeypatch):
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name == "envpool" else real_find_spec(name))
+    assert "extra dmc (dmc/*): not installed (no envpool): pip install -e '.[dmc]'" in extras_lines()
 
 
 def test_listing_help_and_bad_arguments():

@@ -27,32 +27,28 @@ import os
 if not os.environ.get("DISPLAY"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
-from rpo_jax.envs.check import check_env  # noqa: E402
-from rpo_jax.envs.host import HostEnv, SequentialSimulators  # noqa: E402
-from rpo_jax.envs.protocol import (  # noqa: E402
-    BatchedEnv,
-    Env,
-    EnvSpec,
-    MissingExtraError,
-    Renderable,
-    TimeStep,
-    Vectorizable,
-    first_step,
-)
-from rpo_jax.envs.registry import env_names, env_spec, make_env, make_vector_env, register_env  # noqa: E402
-from rpo_jax.envs.wrappers import (  # noqa: E402
-    AutoReset,
-    ClipAction,
-    DoneIsTermination,
-    EpisodeStatistics,
-    NormalizeObservation,
-    NormalizeReward,
-    RunningMeanStd,
-    TimeLimit,
-    VectorEnv,
-    normalize_observation,
-    vectorize,
-)
+import importlib  # noqa: E402
+from typing import Any  # noqa: E402
+
+# Imported on first use, so that `python -m rpo_jax.envs --help` and the command lines that
+# import this package for a submodule (`dmc_tasks`) load no JAX.
+_EXPORTS = {
+    "check_env": "check", "HostEnv": "host", "SequentialSimulators": "host",
+    "BatchedEnv": "protocol", "Env": "protocol", "EnvSpec": "protocol", "MissingExtraError": "protocol",
+    "Renderable": "protocol", "TimeStep": "protocol", "Vectorizable": "protocol", "first_step": "protocol",
+    "env_names": "registry", "env_spec": "registry", "make_env": "registry", "make_vector_env": "registry",
+    "register_env": "registry",
+    "AutoReset": "wrappers", "ClipAction": "wrappers", "DoneIsTermination": "wrappers", "EpisodeStatistics": "wrappers",
+    "NormalizeObservation": "wrappers", "NormalizeReward": "wrappers", "RunningMeanStd": "wrappers",
+    "TimeLimit": "wrappers", "VectorEnv": "wrappers", "normalize_observation": "wrappers", "vectorize": "wrappers",
+}  # fmt: skip
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'rpo_jax.envs' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"rpo_jax.envs.{_EXPORTS[name]}"), name)
+
 
 __all__ = [
     "AutoReset",

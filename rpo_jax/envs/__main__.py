@@ -3,10 +3,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 
-from rpo_jax.envs.check import check_env
-from rpo_jax.envs.registry import env_names, env_spec, make_env
 from rpo_jax.errors import UsageError, usage_failure
 
 USAGE = (
@@ -14,7 +13,7 @@ USAGE = (
     "Lists every registered environment, one line each: its name (what --env takes), its backend "
     "(mjx, jax, brax-<pipeline> or host), its observation and action sizes, and its episode length "
     "in steps. It reads the static specs and builds no environment, so it needs none of the "
-    "optional extras.\n\n"
+    "optional extras; its last lines say which extras are installed.\n\n"
     "--check NAME builds the environment NAME (a registered name, gymnasium/<id> or an import path "
     "package.module:factory), runs it and prints one line per problem with what the trainer relies on "
     "(rpo_jax.check_env); exit code 1 if it found any, 0 if none."
@@ -25,7 +24,30 @@ NOTE = (
 )
 
 
+# The optional extras (pyproject.toml), the names they provide and the modules they install.
+EXTRAS = {
+    "gym": ("gym/", ("gymnax", "gymnasium", "Box2D")),
+    "dmc": ("dmc/", ("envpool",)),
+    "pybullet": ("pybullet/", ("pybullet", "pybullet_envs")),
+    "playground": ("mjx-dmc/", ("mujoco_playground",)),
+}
+
+
+def extras_lines() -> list[str]:
+    """One line per optional extra: installed, or the command that installs it. Found without
+    importing the modules."""
+    lines = []
+    for extra, (prefix, modules) in EXTRAS.items():
+        missing = [module for module in modules if importlib.util.find_spec(module) is None]
+        state = f"not installed (no {', '.join(missing)}): pip install -e '.[{extra}]'" if missing else "installed"
+        lines.append(f"extra {extra} ({prefix}*): {state}")
+    return lines
+
+
 def list_envs() -> None:
+    # Imported here so that --help loads no JAX.
+    from rpo_jax.envs.registry import env_names, env_spec
+
     rows = [("name", "backend", "obs", "act", "episode")]
     for name in env_names():
         spec = env_spec(name)
@@ -34,9 +56,14 @@ def list_envs() -> None:
     for row in rows:
         print("  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip())
     print(NOTE)
+    print()
+    print("\n".join(extras_lines()))
 
 
 def check(name: str) -> int:
+    from rpo_jax.envs.check import check_env
+    from rpo_jax.envs.registry import make_env
+
     problems = check_env(make_env(name))
     for problem in problems:
         print(f"{name}: {problem}")
