@@ -195,7 +195,8 @@ def test_listing_names_every_env_with_its_sizes_without_building_them():
         [sys.executable, "-m", "rpo_jax.envs"], capture_output=True, text=True, timeout=120, check=True
     )
     assert result.stderr == ""
-    rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[1:]}
+    table = result.stdout.partition("\n\n")[0]  # the lines on extras follow a blank line
+    rows = {line.split()[0]: line.split()[1:] for line in table.splitlines()[1:]}
     assert tuple(rows) == envs.env_names()
     for name in ("gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "pybullet/Minitaur", "dmc/walker-walk"):
         spec = envs.env_spec(name)
