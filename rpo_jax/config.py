@@ -36,18 +36,17 @@ class Algorithm:
     name: str
     summary: str
     augmentation: str  # one of AUGMENTATIONS
-    perturbs_location: bool  # RPO's U(-rpo_alpha, rpo_alpha) noise on the policy location
     reads: tuple[str, ...]  # the algorithm-specific Config fields it uses
 
 
 ALGORITHMS: dict[str, Algorithm] = {
     algorithm.name: algorithm
     for algorithm in (
-        Algorithm("ppo", "PPO with the clipped surrogate", "none", False, ()),
-        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none", True, ("rpo_alpha",)),
-        Algorithm("rad", "PPO on amplitude-scaled observations (RAD)", "rad", False, ("aug_low", "aug_high")),
+        Algorithm("ppo", "PPO with the clipped surrogate", "none", ()),
+        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none", ("rpo_alpha",)),
+        Algorithm("rad", "PPO on amplitude-scaled observations (RAD)", "rad", ("aug_low", "aug_high")),
         Algorithm(
-            "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac", False,
+            "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac",
             ("drac_coef", "aug_low", "aug_high"),
         ),
     )

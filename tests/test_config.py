@@ -21,7 +21,7 @@ def test_the_library_and_the_command_line_share_one_default():
 def test_algorithms_that_do_not_perturb_train_with_alpha_zero():
     for name, algorithm in ALGORITHMS.items():
         alpha = Config(algo=name).hyperparameters()["rpo_alpha"]
-        assert alpha == (0.5 if algorithm.perturbs_location else 0.0), name
+        assert alpha == (0.5 if "rpo_alpha" in algorithm.reads else 0.0), name
     assert float(ppo.Hyperparams.from_config(Config(algo="ppo", rpo_alpha=3.0)).rpo_alpha) == 0.0
 
 
