@@ -25,7 +25,7 @@ import jax
 import numpy as np
 from flax import serialization
 
-from rpo_jax import envs, ppo
+from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.errors import Interrupted, UsageError
@@ -34,7 +34,9 @@ from rpo_jax.scores import tail_mean
 
 CHECKPOINTS_PER_RUN = 10
 # The plan's fields that config.json records and a resumed run reads back.
-PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every")
+PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "devices", "shard_envs")
+# What a resumed run of a config.json written before a field existed reads for it.
+PLAN_DEFAULTS = {"devices": None, "shard_envs": False}
 
 
 class Sink(Protocol):
@@ -67,6 +69,8 @@ class RunPlan:
     log_every: int
     checkpoint_every: int  # env steps per run between checkpoints; 0: none
     resuming: bool = False
+    devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
+    shard_envs: bool = False  # split each run's environments over the devices instead of the runs
 
     @property
     def seeds(self) -> range:
@@ -80,6 +84,7 @@ class RunPlan:
 def new_plan(
     out: Path, env: str, config: Config, preset: str | None = None, seed: int = 1, num_seeds: int = 1,
     sweep: Sequence[str] = (), log_every: int | None = None, checkpoint_every: int | None = None,
+    devices: int | None = None, shard_envs: bool = False,
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
     config.validate()
@@ -92,12 +97,14 @@ def new_plan(
         raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {checkpoint_every}")
     if not RunDir(out).is_new():
         raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
-    parse_sweeps(sweep, config)
+    grid = parse_sweeps(sweep, config)
+    placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)  # a bad layout is refused here too
     run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
         log_every=log_every or max(1, config.num_updates // 100),
         checkpoint_every=run_steps // CHECKPOINTS_PER_RUN if checkpoint_every is None else checkpoint_every,
+        devices=devices, shard_envs=shard_envs,
     )  # fmt: skip
 
 
@@ -109,11 +116,16 @@ def resumed_plan(out: Path) -> RunPlan:
     if run_dir.is_finished():
         raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
     saved = run_dir.read_config()
-    plan = saved["plan"]
+    plan = {**PLAN_DEFAULTS, **saved["plan"]}
     return RunPlan(
         out=out, config=Config.from_dict(saved["config"]), resuming=True,
         **{name: tuple(plan[name]) if name == "sweep" else plan[name] for name in PLAN_FIELDS},
     )  # fmt: skip
+
+
+def placement_of(env: str, config: Config, device_count: int | None, shard_envs: bool, num_runs: int) -> devices.Placement:
+    spec = envs.env_spec(env)
+    return devices.make_placement(device_count, shard_envs, num_runs, config, env, spec.runs_on_host)
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -194,7 +206,8 @@ class Compiled:
     """What `run` builds before the loop: the trainer, the state and the compiled chunk."""
 
     trainer: ppo.Trainer
-    state: ppo.TrainState
+    placement: devices.Placement
+    state: ppo.TrainState  # placed on the devices
     record: dict[str, Any]  # the checkpoint's: updates done, metrics.jsonl's size, train seconds
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, ppo.Metrics]]
     chunk: int
@@ -208,10 +221,13 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     env = envs.make_env(plan.env)
     runs = describe_runs(plan, grid)
     run_dir = plan.run_dir
+    placement = placement_of(plan.env, plan.config, plan.devices, plan.shard_envs, len(runs))
     if not plan.resuming:
         run_dir.create()
-        run_dir.write_config(config_record(plan, runs, swept, env.spec))
-    compiled = compile_runs(plan, env, runs)
+        run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
+    else:
+        devices.check_resumable(run_dir.read_config(), placement, plan.out)
+    compiled = compile_runs(plan, env, runs, placement)
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
     # the sinks from the rows kept, so nothing is logged twice.
     kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"])
@@ -225,34 +241,35 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     finally:
         for sink in sinks:
             sink.close()
-    params = jax.device_get({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
+    params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
     run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
-    summary = summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds)
+    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
     run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
 
 
-def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Compiled:
-    """The trainer, the initial or restored state of every run, and the compiled chunk."""
+def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], placement: devices.Placement) -> Compiled:
+    """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
-    trainer = ppo.make_trainer(config, env)
+    trainer = placement.make_trainer(config, env)
     chunk = chunk_length(config.num_updates)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
     )
-    abstract_state = jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
+    init = placement.init_program(trainer)
+    abstract_state = jax.eval_shape(init, keys, hparams)
     start = time.perf_counter()
-    restored = restore(plan, abstract_state) if plan.resuming else None
+    restored = restore(plan, placement.checkpoint_layout(abstract_state)) if plan.resuming else None
     if restored is None:
-        state, record = jax.jit(jax.vmap(trainer.init))(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
+        state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
     else:
-        state, record = restored
+        state, record = placement.from_checkpoint(restored[0]), restored[1]
         if env.spec.runs_on_host:
             # The simulators died with the interrupted process and no checkpoint holds them.
             state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
-    run_chunk = jax.jit(jax.vmap(lambda s: trainer.scan_updates(s, chunk))).lower(abstract_state).compile()
-    return Compiled(trainer, state, record, run_chunk, chunk, time.perf_counter() - start)
+    run_chunk = placement.chunk_program(trainer, chunk, abstract_state)
+    return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start)
 
 
 def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
@@ -298,7 +315,7 @@ def train_chunks(
     with plan.run_dir.append_metrics() as metrics_file, _interruptible(plan.out):
         for first_update in range(record["update"], config.num_updates, chunk):
             state, metrics = compiled.run_chunk(state)
-            metrics = jax.device_get(metrics)
+            metrics = compiled.placement.real_runs(metrics)
             updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
             sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
@@ -311,7 +328,7 @@ def train_chunks(
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 train_seconds = time.perf_counter() - train_start
                 checkpointer.save(
-                    updates_done, state,
+                    updates_done, compiled.placement.checkpoint_state(state),
                     {"update": updates_done, "metrics_bytes": sync(metrics_file), "train_seconds": train_seconds},
                 )  # fmt: skip
                 last_checkpoint = updates_done

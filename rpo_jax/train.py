@@ -58,6 +58,11 @@ class TrainArgs:
     """checkpoint every N environment steps per run; None: 10 per run; 0: never"""
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
+    devices: int | None = None
+    """local devices to train on; None: all. The runs (seeds x sweep points) are split across them,
+    at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
+    shard_envs: bool = False
+    """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
     quiet: bool = False
     """no progress display"""
 
@@ -142,6 +147,7 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     return runner.new_plan(
         out=out, env=args.env, config=args.config, preset=args.preset, seed=args.seed, num_seeds=args.num_seeds,
         sweep=args.sweep, log_every=args.log_every, checkpoint_every=args.checkpoint_every,
+        devices=args.devices, shard_envs=args.shard_envs,
     )  # fmt: skip
 
 
