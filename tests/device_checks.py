@@ -15,10 +15,11 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from rpo_jax import envs, ppo, train
+from rpo_jax import devices, envs, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.devices import AXIS
 
@@ -84,6 +85,22 @@ def gradient_and_statistics(count: int) -> dict:
     }
 
 
+def replicas(count: int) -> dict:
+    """The largest difference between the devices' slices of a data-parallel state after two
+    updates, for the leaves every device must hold alike."""
+    config = Config(num_envs=8, num_steps=8, num_minibatches=2, update_epochs=2, total_timesteps=128)
+    placement = devices.make_placement(count, True, 2, config, "cartpole", runs_on_host=False)
+    trainer = placement.make_trainer(config, envs.make_env("cartpole"))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    hparams = jax.vmap(lambda _: ppo.Hyperparams.from_config(config))(jnp.arange(2))
+    init = placement.init_program(trainer)
+    state = init(keys, hparams)
+    state, _ = placement.chunk_program(trainer, 2, jax.eval_shape(init, keys, hparams))(state)
+    alike = {"params": state.params, "value_stats": state.value_stats, "obs_stats": trainer.observation_statistics(state)}
+    spread = lambda leaf: float(np.max(np.abs(np.asarray(leaf) - np.asarray(leaf)[:1])))
+    return {"max_difference": max(jax.tree.leaves(jax.tree.map(spread, alike))), "leading": int(state.obs.shape[0])}
+
+
 def learning(out: Path, count: int, total_timesteps: int) -> dict:
     """Cartpole's default config, two seeds, trained with its environments split over `count` devices."""
     return run_command([
@@ -96,6 +113,7 @@ def learning(out: Path, count: int, total_timesteps: int) -> dict:
 CHECKS = {
     "commands": lambda directory, *runs: commands(directory, [json.loads(run) for run in runs]),
     "gradient": lambda directory, count: gradient_and_statistics(int(count)),
+    "replicas": lambda directory, count: replicas(int(count)),
     "learning": lambda directory, count, steps: learning(directory / "learning", int(count), int(steps)),
 }
 

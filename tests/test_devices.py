@@ -45,12 +45,11 @@ def rows_of(run_dir: Path) -> list[dict]:
     return [{k: v for k, v in row.items() if k != "sps"} for row in RunDir(run_dir).read_metrics()]
 
 
-# 4 runs (2 seeds x 2 alphas) on 1, 2 and 4 devices; 3 runs on 2 devices, padded to 4.
+# 4 runs (seeds 1-4) on 1, 2 and 4 devices; seeds 1-3 on 2 devices, padded to 4 with a copy of seed 1.
 RUN_SPLITS = {
-    "d1": ["--num-seeds", "2", "--sweep", "rpo_alpha=0.1,0.5", "--devices", "1"],
-    "d2": ["--num-seeds", "2", "--sweep", "rpo_alpha=0.1,0.5", "--devices", "2"],
-    "d4": ["--num-seeds", "2", "--sweep", "rpo_alpha=0.1,0.5", "--devices", "4"],
-    "three-d1": ["--num-seeds", "3", "--devices", "1"],
+    "d1": ["--num-seeds", "4", "--devices", "1"],
+    "d2": ["--num-seeds", "4", "--devices", "2"],
+    "d4": ["--num-seeds", "4", "--devices", "4"],
     "three-d2": ["--num-seeds", "3", "--devices", "2"],
 }
 
@@ -64,14 +63,16 @@ def run_splits(tmp_path_factory):
     return tmp_path
 
 
-@pytest.mark.parametrize("split, reference", [("d2", "d1"), ("d4", "d1"), ("three-d2", "three-d1")])
-def test_runs_split_over_devices_train_as_on_one_device(run_splits, split, reference):
+@pytest.mark.parametrize("split", ["d2", "d4", "three-d2"])
+def test_runs_split_over_devices_train_as_on_one_device(run_splits, split):
     # Not bit-exact: each device's program vmaps fewer runs than the one-device program, and
     # XLA's CPU kernels round a batch of 1 or 2 differently from one of 4 (as they do a vmapped
     # seed against the same seed alone, see test_training). Measured: parameters within 4e-6.
-    for a, b in zip(params_of(run_splits / split), params_of(run_splits / reference), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
-    split_rows, reference_rows = rows_of(run_splits / split), rows_of(run_splits / reference)
+    runs = 3 if split.startswith("three") else 4
+    for a, b in zip(params_of(run_splits / split), params_of(run_splits / "d1"), strict=True):
+        np.testing.assert_allclose(a, b[:runs], rtol=1e-4, atol=2e-5)
+    split_rows = rows_of(run_splits / split)
+    reference_rows = [row for row in rows_of(run_splits / "d1") if row["run"] < runs]
     assert [(r["run"], r["update"]) for r in split_rows] == [(r["run"], r["update"]) for r in reference_rows]
     for a, b in zip(split_rows, reference_rows):
         assert a.keys() == b.keys()
@@ -79,13 +80,13 @@ def test_runs_split_over_devices_train_as_on_one_device(run_splits, split, refer
             np.testing.assert_allclose(a[name], b[name], rtol=1e-3, atol=1e-5, err_msg=name)
     summary = RunDir(run_splits / split).read_summary()
     assert summary["placement"] == "runs" and summary["devices"] == int(split[-1])
-    assert summary["padded_runs"] == 4 and len(summary["runs"]) == (3 if split.startswith("three") else 4)
+    assert summary["padded_runs"] == 4 and len(summary["runs"]) == runs
 
 
 def test_split_runs_are_distinct_runs(run_splits):
     # The padding copies the first run; the real runs stay distinct (the comparison is not vacuous).
-    first, second = (np.asarray(params_of(run_splits / "three-d2")[0])[i] for i in (0, 1))
-    assert not np.array_equal(first, second)
+    kernel = max(params_of(run_splits / "three-d2"), key=np.size)
+    assert all(not np.array_equal(kernel[0], kernel[i]) for i in (1, 2))
 
 
 @pytest.fixture(scope="module")
@@ -127,3 +128,22 @@ def test_bad_layouts_exit_2_with_one_line(tmp_path):
         assert results[name]["code"] == 2, (name, results[name])
         assert message in results[name]["stderr"] and results[name]["stderr_lines"] == 1, (name, results[name])
         assert not (tmp_path / name).exists()
+
+
+def test_data_parallel_devices_hold_the_same_parameters_and_statistics(tmp_path):
+    # Averaged gradients and merged statistics keep every device's copy identical, bit for bit.
+    result = device_check(tmp_path, "replicas", "4")
+    assert result["leading"] == 4 and result["max_difference"] == 0.0
+
+
+# Measured on the 2-core CPU (jax 0.10.2, 4 forced host devices), default Config, 300k steps, seeds
+# 0 and 1, environments split over 4 devices: see LEARNING_MEASURED. One device (test_training):
+# 474.5 and 477.9 (RPO: 464.1, 474.7). The threshold is test_training's.
+@pytest.mark.slow
+def test_data_parallel_run_learns_cartpole_as_one_device_does(tmp_path):
+    result = device_check(tmp_path, "learning", "4", "300000")
+    assert result["code"] == 0, result
+    summary = RunDir(tmp_path / "learning").read_summary()
+    assert summary["placement"] == "envs" and summary["devices"] == 4
+    finals = [run["final_return"] for run in summary["runs"]]
+    assert min(finals) >= 400, finals
