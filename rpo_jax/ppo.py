@@ -6,8 +6,15 @@
 
 One update is `rollout` (the environments stepped by the current policy), `make_batch` (values,
 GAE and the flattened batch), `minibatch_epochs` (shuffled passes over the batch) and, for each
-minibatch, `gradient_step`: the one place where gradients are taken and the optimiser steps,
-and so where a cross-device all-reduce belongs.
+minibatch, `gradient_step`: the one place where gradients are taken and the optimiser steps.
+
+A trainer made with `axis_name` (and `env_shards` D) is one device's part of a run whose
+environments are split over that device axis (data parallel, see `rpo_jax.devices`): it steps
+num_envs / D environments, `gradient_step` averages the gradients and loss metrics over the
+axis, the normalisers merge their statistics over it, advantages are normalised by the
+statistics of the whole minibatch, and the random draws that differ per environment or per
+sample (actions, resets, minibatch shuffles, RPO's noise) come from keys folded with the
+device's index, so no two devices draw alike.
 
 RPO differs from PPO in one line of `ppo_loss`: during the update the policy's location is
 perturbed by U(-rpo_alpha, rpo_alpha) noise (`networks.perturb_location`). Rollouts sample from
@@ -135,6 +142,7 @@ def ppo_loss(
     key: jax.Array,
     config: Config,
     hparams: Hyperparams | None = None,
+    axis_name: str | None = None,
 ) -> tuple[jax.Array, LossMetrics]:
     """Clipped-surrogate PPO loss on one minibatch [B]; with rpo_alpha > 0, the RPO loss.
 
@@ -144,7 +152,8 @@ def ppo_loss(
     outputs on scaled observations towards them. `approx_kl` measures how far the unperturbed
     policy moved from the rollout policy: the perturbation alone would add about
     alpha^2 / (6 sigma^2) to it and starve the adaptive learning-rate schedule.
-    `hparams` defaults to the config's values. Returns the scalar loss and its parts."""
+    `hparams` defaults to the config's values. With `axis_name`, `batch` is this device's share
+    of a minibatch split over that axis. Returns the scalar loss and its parts."""
     hparams = Hyperparams.from_config(config) if hparams is None else hparams
     perturb_key, augment_key = jax.random.split(key)
     obs = batch.obs
@@ -161,7 +170,7 @@ def ppo_loss(
     )
     advantages = batch.advantages
     if config.norm_adv:
-        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+        advantages = normalize_advantages(advantages, axis_name)
     policy_loss = jnp.maximum(
         -advantages * ratio, -advantages * jnp.clip(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
     ).mean()
@@ -187,6 +196,20 @@ def ppo_loss(
     return loss, metrics
 
 
+def normalize_advantages(advantages: jax.Array, axis_name: str | None = None) -> jax.Array:
+    """Advantages of a minibatch [B] standardised by its mean and std; with `axis_name`, by those
+    of the whole minibatch, whose equal shares lie on the devices of that axis."""
+    if axis_name is None:
+        return (advantages - advantages.mean()) / (advantages.std() + 1e-8)
+    mean = jax.lax.pmean(advantages.mean(), axis_name)
+    std = jnp.sqrt(jax.lax.pmean(((advantages - mean) ** 2).mean(), axis_name))
+    return (advantages - mean) / (std + 1e-8)
+
+
+def device_key(key: jax.Array, axis_name: str | None) -> jax.Array:
+    """`key` folded with the device's index on `axis_name`, for draws that must differ between
+    the devices that share a run; `key` itself without an axis."""
+    return key if axis_name is None else jax.random.fold_in(key, jax.lax.axis_index(axis_name))
 
 
 # --------------------------------------------------------------------------------------------
@@ -257,18 +280,23 @@ class Transition:
     episode_length: jax.Array
 
 
-def wrap_for_training(env: envs.Env, config: Config) -> envs.NormalizeObservation:
+def wrap_for_training(
+    env: envs.Env, config: Config, env_shards: int = 1, axis_name: str | None = None
+) -> envs.NormalizeObservation:
     """The batched environment the trainer steps: `env` itself if it is already batched, else
-    `config.num_envs` auto-resetting copies, under the episode statistics, action clipping and
-    the reward and observation normalisers."""
+    `config.num_envs / env_shards` auto-resetting copies (one device's share), under the episode
+    statistics, action clipping and the reward and observation normalisers."""
+    num_envs = config.num_envs // env_shards
     if not isinstance(env, envs.BatchedEnv):
-        env = envs.vectorize(env, config.num_envs)
-    elif env.num_envs != config.num_envs:
-        raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {config.num_envs}")
+        env = envs.vectorize(env, num_envs)
+    elif env.num_envs != num_envs:
+        raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {num_envs}")
     vec = envs.EpisodeStatistics(env)
     vec = envs.ClipAction(vec)
-    vec = envs.NormalizeReward(vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward)
-    return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs)
+    vec = envs.NormalizeReward(
+        vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward, axis_name
+    )
+    return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs, axis_name=axis_name)
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:
@@ -308,6 +336,7 @@ class Trainer:
     actor: Actor
     critic: Critic
     optimizer: optax.GradientTransformation
+    axis_name: str | None = None  # the device axis one run's environments are split over, if any
 
     def init(self, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
         return init_state(self, key, hparams)
@@ -340,10 +369,13 @@ class Trainer:
         return self.env.statistics(state.env_state)
 
 
-def make_trainer(config: Config, env: envs.Env) -> Trainer:
+def make_trainer(config: Config, env: envs.Env, axis_name: str | None = None, env_shards: int = 1) -> Trainer:
+    """The trainer of `config` on `env`; with `axis_name`, one device's part of a run whose
+    environments are split in `env_shards` equal shares over that device axis."""
     config.validate()
     actor, critic = make_networks(config, env.spec.action_size)
-    return Trainer(config, wrap_for_training(env, config), actor, critic, make_optimizer(config))
+    wrapped = wrap_for_training(env, config, env_shards, axis_name)
+    return Trainer(config, wrapped, actor, critic, make_optimizer(config), axis_name)
 
 
 def init_state(trainer: Trainer, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
@@ -352,7 +384,7 @@ def init_state(trainer: Trainer, key: jax.Array, hparams: Hyperparams | None = N
     key, actor_key, critic_key, env_key = jax.random.split(key, 4)
     dummy_obs = jnp.zeros((spec.observation_size,))
     params = {"actor": trainer.actor.init(actor_key, dummy_obs), "critic": trainer.critic.init(critic_key, dummy_obs)}
-    env_state, ts = trainer.env.reset(env_key)
+    env_state, ts = trainer.env.reset(device_key(env_key, trainer.axis_name))
     zero = jnp.zeros(())
     opt_state = set_learning_rate(trainer.optimizer.init(params), hparams.lr)
     return TrainState(
@@ -376,7 +408,7 @@ def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key:
         )  # fmt: skip
         return (env_state, ts.obs), transition
 
-    keys = jax.random.split(key, trainer.config.num_steps)
+    keys = jax.random.split(device_key(key, trainer.axis_name), trainer.config.num_steps)
     (env_state, obs), traj = jax.lax.scan(functools.partial(step, params), (env_state, obs), keys)
     return env_state, obs, traj
 
@@ -398,10 +430,10 @@ def make_batch(
     )  # fmt: skip
     if config.normalize_value:
         # The critic learns the new returns on the scale of statistics that include them.
-        value_stats = value_stats.update(returns.reshape(-1))
+        value_stats = value_stats.update(returns.reshape(-1), trainer.axis_name)
         values, returns = value_stats.standardize(values), value_stats.standardize(returns)
     batch = jax.tree.map(
-        lambda x: x.reshape(config.batch_size, *x.shape[2:]),
+        lambda x: x.reshape(-1, *x.shape[2:]),
         Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
     )
     return batch, value_stats
@@ -410,9 +442,15 @@ def make_batch(
 def gradient_step(
     trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
 ) -> tuple[dict, Any, LossMetrics]:
-    """One optimiser step on one minibatch, and the adaptive learning rate's adjustment."""
-    config = trainer.config
-    grads, metrics = jax.grad(ppo_loss, has_aux=True)(params, trainer.actor, trainer.critic, batch, key, config, hparams)
+    """One optimiser step on one minibatch, and the adaptive learning rate's adjustment. With a
+    device axis, the gradients and loss metrics are the means over the devices' shares of the
+    minibatch, so every device takes the same step."""
+    config, axis_name = trainer.config, trainer.axis_name
+    grads, metrics = jax.grad(ppo_loss, has_aux=True)(
+        params, trainer.actor, trainer.critic, batch, key, config, hparams, axis_name
+    )
+    if axis_name is not None:
+        grads, metrics = jax.lax.pmean((grads, metrics), axis_name)
     updates, opt_state = trainer.optimizer.update(grads, opt_state, params)
     params = optax.apply_updates(params, updates)
     if config.lr_schedule == "adaptive":
@@ -427,6 +465,8 @@ def minibatch_epochs(
     trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
 ) -> tuple[dict, Any, LossMetrics]:
     """`update_epochs` passes over `batch`, each in `num_minibatches` shuffled minibatches.
+    With a device axis, each device shuffles its own share of the batch and takes its share of
+    every minibatch from it, so over an epoch every sample is used once, as on one device.
     Returns the parameters, the optimiser state and the loss metrics [epochs, minibatches]."""
     config = trainer.config
 
@@ -437,10 +477,10 @@ def minibatch_epochs(
 
     def epoch(carry, key):
         batch, params, opt_state = carry
-        permute_key, loss_key = jax.random.split(key)
-        permutation = jax.random.permutation(permute_key, config.batch_size)
+        permute_key, loss_key = (device_key(k, trainer.axis_name) for k in jax.random.split(key))
+        permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
         minibatches = jax.tree.map(
-            lambda x: x[permutation].reshape(config.num_minibatches, config.minibatch_size, *x.shape[1:]),
+            lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]),
             batch,
         )
         loss_keys = jax.random.split(loss_key, config.num_minibatches)
@@ -471,7 +511,7 @@ def update_with_rollout(trainer: Trainer, state: TrainState) -> tuple[TrainState
     batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
     params, opt_state, loss_metrics = minibatch_epochs(trainer, state.hparams, state.params, opt_state, batch, epochs_key)
 
-    episode_return, episode_length, finished = finished_episodes(traj, state)
+    episode_return, episode_length, finished = finished_episodes(traj, state, trainer.axis_name)
     update_count = state.update + 1
     metrics = Metrics(
         env_steps=update_count * config.batch_size,
@@ -489,14 +529,19 @@ def update_with_rollout(trainer: Trainer, state: TrainState) -> tuple[TrainState
     return new_state, metrics, traj
 
 
-def finished_episodes(traj: Transition, state: TrainState) -> tuple[jax.Array, jax.Array, jax.Array]:
+def finished_episodes(
+    traj: Transition, state: TrainState, axis_name: str | None = None
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Mean return and length of the episodes that ended in this rollout (the previous
-    update's where none did), and how many ended."""
-    finished = (traj.terminated | traj.truncated).sum()
+    update's where none did), and how many ended; with `axis_name`, over all its devices."""
+    sums = (traj.terminated | traj.truncated).sum(), traj.episode_return.sum(), traj.episode_length.sum()
+    if axis_name is not None:
+        sums = jax.lax.psum(sums, axis_name)
+    finished, return_sum, length_sum = sums
     any_finished = finished > 0
     denominator = jnp.maximum(finished, 1)
-    episode_return = jnp.where(any_finished, traj.episode_return.sum() / denominator, state.last_episode_return)
-    episode_length = jnp.where(any_finished, traj.episode_length.sum() / denominator, state.last_episode_length)
+    episode_return = jnp.where(any_finished, return_sum / denominator, state.last_episode_return)
+    episode_length = jnp.where(any_finished, length_sum / denominator, state.last_episode_length)
     return episode_return, episode_length, finished
 
 

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from rpo_jax import envs, ppo
+from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.errors import Diverged, Interrupted, UsageError
@@ -47,8 +47,12 @@ CHECKPOINT_MIN_RUN_STEPS = 5_000_000
 SEED_LIMIT = 2**32
 # The plan's fields that config.json records and a resumed run reads back; runs recorded before
 # evaluation during training existed lack the eval fields and read back with evaluation off.
-PLAN_FIELDS = ("env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes")
-OPTIONAL_PLAN_FIELDS = ("eval_every", "eval_episodes")
+PLAN_FIELDS = (
+    "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
+    "devices", "shard_envs",
+)  # fmt: skip
+# What a resumed run of a config.json written before a field existed reads for it.
+PLAN_DEFAULTS = {"eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False}
 
 
 class Sink(Protocol):
@@ -82,6 +86,8 @@ class RunPlan:
     checkpoint_every: int  # env steps per run between checkpoints; 0: none
     eval_every: int = 0  # env steps per run between evaluations of the deterministic policy; 0: none
     eval_episodes: int = 10
+    devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
+    shard_envs: bool = False  # split each run's environments over the devices instead of the runs
     resuming: bool = False
 
     @property
@@ -96,7 +102,7 @@ class RunPlan:
 def new_plan(
     out: Path, env: str, config: Config, preset: str | None = None, seed: int = 1, num_seeds: int = 1,
     sweep: Sequence[str] = (), log_every: int | None = None, checkpoint_every: int | None = None,
-    eval_every: int = 0, eval_episodes: int = 10,
+    eval_every: int = 0, eval_episodes: int = 10, devices: int | None = None, shard_envs: bool = False,
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
     check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
@@ -105,12 +111,15 @@ def new_plan(
     if not RunDir(out).is_new():
         raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
     check_writable(out)
+    placement = placement_of(env, config, devices, shard_envs, len(parse_sweeps(sweep, config)) * num_seeds)
+    if eval_every and placement.count > 1:
+        raise UsageError(f"--eval-every works on one device for now, not {placement.count}; give --devices 1")
     run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
         log_every=log_every or max(1, config.num_updates // 100),
         checkpoint_every=default_checkpoint_every(run_steps) if checkpoint_every is None else checkpoint_every,
-        eval_every=eval_every, eval_episodes=eval_episodes,
+        eval_every=eval_every, eval_episodes=eval_episodes, devices=devices, shard_envs=shard_envs,
     )  # fmt: skip
 
 
@@ -168,7 +177,7 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
     try:
         saved = run_dir.read_config()
-        plan = {name: saved["plan"][name] for name in PLAN_FIELDS if name in saved["plan"] or name not in OPTIONAL_PLAN_FIELDS}
+        plan = {name: {**PLAN_DEFAULTS, **saved["plan"]}[name] for name in PLAN_FIELDS}
         config = Config.from_dict(saved["config"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: {error}") from None
@@ -178,6 +187,11 @@ def resumed_plan(out: Path) -> RunPlan:
         out=out, config=config, resuming=True,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
+
+
+def placement_of(env: str, config: Config, device_count: int | None, shard_envs: bool, num_runs: int) -> devices.Placement:
+    spec = envs.env_spec(env)
+    return devices.make_placement(device_count, shard_envs, num_runs, config, env, spec.runs_on_host)
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -286,7 +300,8 @@ class Compiled:
     """What `run` builds before the loop: the trainer, the state and the compiled chunk."""
 
     trainer: ppo.Trainer
-    state: ppo.TrainState
+    placement: devices.Placement
+    state: ppo.TrainState  # placed on the devices
     record: dict[str, Any]  # the checkpoint's: updates done, metrics.jsonl's size, train seconds
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
     chunk: int
@@ -334,9 +349,12 @@ def train_locked(
     swept = list(grid[0])
     runs = describe_runs(plan, grid)
     run_dir = plan.run_dir
+    placement = placement_of(plan.env, plan.config, plan.devices, plan.shard_envs, len(runs))
     if not plan.resuming:
-        run_dir.write_config(config_record(plan, runs, swept, env.spec))
-    compiled = compile_runs(plan, env, runs)
+        run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
+    else:
+        devices.check_resumable(run_dir.read_config(), placement, plan.out)
+    compiled = compile_runs(plan, env, runs, placement)
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
     # the sinks from the rows kept, so nothing is logged twice.
     kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"])
@@ -349,9 +367,9 @@ def train_locked(
     finally:
         for sink in sinks:
             sink.close()
-    params = jax.device_get({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
+    params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
     run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
-    summary = summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds)
+    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
     run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
 
@@ -370,31 +388,32 @@ def _out_of_memory_refused() -> Iterator[None]:
         ) from None
 
 
-def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]]) -> Compiled:
-    """The trainer, the initial or restored state of every run, and the compiled chunk."""
+def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], placement: devices.Placement) -> Compiled:
+    """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
-    trainer = ppo.make_trainer(config, env)
+    trainer = placement.make_trainer(config, env)
     eval_updates = max(1, plan.eval_every // config.batch_size) if plan.eval_every else None
     chunk = chunk_length(config.num_updates, at_most=eval_updates)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
     )
-    abstract_state = jax.eval_shape(jax.vmap(trainer.init), keys, hparams)
+    init = placement.init_program(trainer)
+    abstract_state = jax.eval_shape(init, keys, hparams)
     start = time.perf_counter()
-    restored = restore(plan, abstract_state) if plan.resuming else None
+    restored = restore(plan, placement.checkpoint_layout(abstract_state)) if plan.resuming else None
     if restored is None:
-        state, record = jax.jit(jax.vmap(trainer.init))(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
+        state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
     else:
-        state, record = restored
+        state, record = placement.from_checkpoint(restored[0]), restored[1]
         if env.spec.runs_on_host:
             # The simulators died with the interrupted process and no checkpoint holds them.
             state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
-    run_chunk = jax.jit(jax.vmap(lambda s: trainer.scan_diagnosed_updates(s, chunk))).lower(abstract_state).compile()
+    run_chunk = placement.chunk_program(trainer, chunk, abstract_state)
     run_eval = compile_evaluation(plan, env, trainer, abstract_state, keys) if plan.eval_every else None
     # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.
     eval_keys = jax.vmap(lambda key: jax.random.fold_in(key, EVAL_STREAM))(keys)
-    return Compiled(trainer, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
+    return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
 
 
 EVAL_STREAM = 0x5EED
@@ -485,7 +504,7 @@ def train_chunks(
     with plan.run_dir.append_metrics() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
             state, (metrics, diagnostics) = compiled.run_chunk(state)
-            metrics, diagnostics = jax.device_get((metrics, diagnostics))
+            metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
             updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
             sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
@@ -505,7 +524,7 @@ def train_chunks(
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 train_seconds = time.perf_counter() - train_start
                 checkpointer.save(
-                    updates_done, state,
+                    updates_done, compiled.placement.checkpoint_state(state),
                     {"update": updates_done, "metrics_bytes": sync(metrics_file), "train_seconds": train_seconds},
                 )  # fmt: skip
                 last_checkpoint = updates_done

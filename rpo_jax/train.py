@@ -76,6 +76,11 @@ class TrainArgs:
     """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
+    devices: int | None = None
+    """local devices to train on; None: all. The runs (seeds x sweep points) are split across them,
+    at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
+    shard_envs: bool = False
+    """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
     quiet: bool = False
     """no progress display"""
 
@@ -169,7 +174,7 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     return runner.new_plan(
         out=out, env=args.env, config=args.config, preset=args.preset, seed=args.seed, num_seeds=args.num_seeds,
         sweep=args.sweep, log_every=args.log_every, checkpoint_every=args.checkpoint_every,
-        eval_every=args.eval_every, eval_episodes=args.eval_episodes,
+        eval_every=args.eval_every, eval_episodes=args.eval_episodes, devices=args.devices, shard_envs=args.shard_envs,
     )  # fmt: skip
 
 

@@ -185,10 +185,18 @@ class RunningMeanStd:
         # A tiny prior count keeps the first update well defined, as in Gym's wrappers.
         return cls(jnp.zeros(shape), jnp.ones(shape), jnp.asarray(1e-4))
 
-    def update(self, batch: jax.Array) -> "RunningMeanStd":
-        """batch: [B, *shape]."""
+    def update(self, batch: jax.Array, axis_name: str | None = None) -> "RunningMeanStd":
+        """batch: [B, *shape]. With `axis_name`, `batch` is this device's share of a batch split
+        in equal shares over that device axis, and every device gets the statistics of the
+        whole batch."""
         batch_mean, batch_var = batch.mean(0), batch.var(0)
         batch_count = batch.shape[0]
+        if axis_name is not None:
+            # Chan's merge of equal-sized shares: the mean of the means, and the mean of the
+            # variances plus the spread of the means around the merged mean.
+            merged_mean = jax.lax.pmean(batch_mean, axis_name)
+            batch_var = jax.lax.pmean(batch_var + (batch_mean - merged_mean) ** 2, axis_name)
+            batch_mean, batch_count = merged_mean, batch_count * jax.lax.psum(1, axis_name)
         delta = batch_mean - self.mean
         count = self.count + batch_count
         mean = self.mean + delta * batch_count / count
@@ -218,10 +226,11 @@ class NormalizeObservation:
     observations seen so far, updated on every batch, then clips them.
 
     With `enabled=False` observations pass through unchanged and the statistics stay at their
-    initial values, so the state keeps one layout either way."""
+    initial values, so the state keeps one layout either way. With `axis_name`, the batch is
+    split over that device axis and the statistics are merged over it (`RunningMeanStd.update`)."""
 
-    def __init__(self, env: Env, clip: float, enabled: bool = True) -> None:
-        self.env, self.spec, self.clip, self.enabled = env, env.spec, clip, enabled
+    def __init__(self, env: Env, clip: float, enabled: bool = True, axis_name: str | None = None) -> None:
+        self.env, self.spec, self.clip, self.enabled, self.axis_name = env, env.spec, clip, enabled, axis_name
 
     def reset(self, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
         state, ts = self.env.reset(key)
@@ -246,7 +255,7 @@ class NormalizeObservation:
         if not self.enabled:
             return NormalizeObservationState(inner, stats), ts
         if update:
-            stats = stats.update(ts.obs)
+            stats = stats.update(ts.obs, self.axis_name)
         return NormalizeObservationState(inner, stats), ts.replace(
             obs=normalize_observation(ts.obs, stats, self.clip),
             final_obs=normalize_observation(ts.final_obs, stats, self.clip),
@@ -263,11 +272,14 @@ class NormalizeRewardState:
 class NormalizeReward:
     """Scales rewards by `scale`, then (if `normalize`) divides them by the running standard
     deviation of the discounted return and clips them, as Gym's NormalizeReward did for the
-    paper. The discounted return restarts when an episode ends."""
+    paper. The discounted return restarts when an episode ends. With `axis_name`, as in
+    `NormalizeObservation`."""
 
-    def __init__(self, env: Env, gamma: float, clip: float, scale: float, normalize: bool) -> None:
+    def __init__(
+        self, env: Env, gamma: float, clip: float, scale: float, normalize: bool, axis_name: str | None = None
+    ) -> None:
         self.env, self.spec = env, env.spec
-        self.gamma, self.clip, self.scale, self.normalize = gamma, clip, scale, normalize
+        self.gamma, self.clip, self.scale, self.normalize, self.axis_name = gamma, clip, scale, normalize, axis_name
 
     def reset(self, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
         state, ts = self.env.reset(key)
@@ -281,7 +293,7 @@ class NormalizeReward:
         inner, ts = self.env.step(state.inner, action)
         reward = ts.reward * self.scale
         discounted = state.discounted_return * self.gamma + reward
-        stats = state.return_stats.update(discounted)
+        stats = state.return_stats.update(discounted, self.axis_name)
         if self.normalize:
             reward = jnp.clip(reward / jnp.sqrt(stats.var + 1e-8), -self.clip, self.clip)
         discounted = jnp.where(ts.terminated | ts.truncated, 0.0, discounted)

@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# Every GPU figure the project claims or aims for, in one prepared run (under 8 minutes on one GPU):
+#
+#   benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]     # OUTDIR: default $OUT if set, else ./device-check
+#
+# | figure | aim | measured by |
+# |---|---|---|
+# | raw cartpole steps/s, 4096 envs | >= 5M | benchmarks/throughput.py (env_sps) |
+# | 100M-step RPO cartpole run (isaacgym preset, 4096 envs): wall and compile s | wall < 60 s | python -m rpo_jax.train |
+# | 10 vmapped seeds against one | < 3x | benchmarks/seeds.py |
+# | ballbalance, mjx-dmc/walker-walk training steps/s, 4096 envs | - | benchmarks/throughput.py (train_sps) |
+# | one update of host-side dmc/walker-walk (the GPU's callback path) | runs | python -m rpo_jax.train |
+# | training steps/s against devices, both placements (more than one device only) | - | benchmarks/scaling.py |
+#
+# Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
+# Writes OUTDIR/<step>.json and .log, OUTDIR/results.json and OUTDIR/results.md (a Markdown table).
+# --cpu-smoke: the same steps at tiny sizes (scaling over 2 forced host devices), to check on a CPU
+# that the script works before GPU time is spent on it; its figures mean nothing.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+smoke=0
+if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
+out_dir=${1:-${OUT:-./device-check}}
+mkdir -p "$out_dir"
+python=${PYTHON:-.venv/bin/python}
+[ -x "$python" ] || python=python
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+
+if [ "$smoke" = 1 ]; then
+    envs=64; env_steps=20; updates=2; long_steps=$((64 * 16 * 4)); seeds_steps=$((64 * 16 * 2))
+    limits=(120 120 120 120 120 120 120)
+    scaling=(--force-host-devices 2 --num-envs 64 --runs 2 --updates 2 --repeats 1)
+else
+    envs=4096; env_steps=500; updates=10; long_steps=100000000; seeds_steps=$((4096 * 16 * 50))
+    # Seconds per step, 480 in all: cartpole, cartpole-long, seeds, ballbalance, mjx-walker, host-walker, scaling.
+    limits=(50 110 80 60 80 40 60)
+    scaling=(--num-envs 4096 --runs 8 --updates 10 --repeats 2)
+fi
+
+# step NAME SECONDS COMMAND...: runs COMMAND under a time limit, logs it and records its wall time and status.
+step() {
+    local name=$1 seconds=$2
+    shift 2
+    local start=$SECONDS
+    timeout "$seconds" "$@" >"$out_dir/$name.log" 2>&1
+    local code=$?
+    echo "{\"step\": \"$name\", \"exit_code\": $code, \"wall_seconds\": $((SECONDS - start))}" >"$out_dir/$name.status.json"
+    echo "$name: exit $code in $((SECONDS - start)) s"
+}
+
+step cartpole "${limits[0]}" "$python" benchmarks/throughput.py --env cartpole --num-envs "$envs" --env-steps "$env_steps" \
+    --train-updates "$updates" --repeats 2 --json "$out_dir/cartpole.json"
+rm -rf "$out_dir/cartpole-long"
+step cartpole-long "${limits[1]}" "$python" -m rpo_jax.train --env cartpole --preset isaacgym --algo rpo --num-envs "$envs" \
+    --total-timesteps "$long_steps" --checkpoint-every 0 --quiet --out "$out_dir/cartpole-long"
+step seeds "${limits[2]}" "$python" benchmarks/seeds.py --env cartpole --preset isaacgym --num-envs "$envs" --seeds 10 \
+    --total-timesteps "$seeds_steps" --repeats 1 --json "$out_dir/seeds.json"
+step ballbalance "${limits[3]}" "$python" benchmarks/throughput.py --env ballbalance --preset isaacgym-ballbalance \
+    --num-envs "$envs" --env-steps "$env_steps" --train-updates "$updates" --repeats 1 --json "$out_dir/ballbalance.json"
+step mjx-walker "${limits[4]}" "$python" benchmarks/throughput.py --env mjx-dmc/walker-walk --num-envs "$envs" \
+    --env-steps "$env_steps" --train-updates "$updates" --repeats 1 --json "$out_dir/mjx-walker.json"
+rm -rf "$out_dir/host-walker"
+step host-walker "${limits[5]}" "$python" -m rpo_jax.train --env dmc/walker-walk --num-envs 64 --num-steps 32 \
+    --total-timesteps 2048 --checkpoint-every 0 --quiet --out "$out_dir/host-walker"
+device_count=$("$python" -c "import jax; print(len(jax.local_devices()))" 2>/dev/null || echo 1)
+if [ "$smoke" = 1 ] || [ "$device_count" -gt 1 ]; then
+    step scaling "${limits[6]}" "$python" benchmarks/scaling.py --env cartpole "${scaling[@]}" --json "$out_dir/scaling.json"
+fi
+
+"$python" - "$out_dir" "$smoke" <<'EOF'
+import json
+import sys
+from pathlib import Path
+
+out, smoke = Path(sys.argv[1]), sys.argv[2] == "1"
+read = lambda name: json.loads((out / name).read_text()) if (out / name).is_file() else None
+status = {path.name.removesuffix(".status.json"): json.loads(path.read_text()) for path in sorted(out.glob("*.status.json"))}
+rows = []  # (figure, value, aim, step)
+if cartpole := read("cartpole.json"):
+    rows += [("raw cartpole env steps/s", f"{cartpole['env_sps']:,.0f}", ">= 5M", "cartpole"),
+             ("cartpole training steps/s (isaacgym)", f"{cartpole['train_sps']:,.0f}", "", "cartpole")]
+if summary := read("cartpole-long/summary.json"):
+    wall = status["cartpole-long"]["wall_seconds"]
+    rows += [(f"RPO cartpole run of {summary['total_timesteps']:,} steps: wall s (process)", f"{wall}", "< 60", "cartpole-long"),
+             ("  compile s / train s", f"{summary['compile_seconds']:.1f} / {summary['train_seconds']:.1f}", "", "cartpole-long"),
+             ("  final return", f"{summary['final_return_mean']:.1f}", "", "cartpole-long")]
+if seeds := read("seeds.json"):
+    rows.append(("10 vmapped seeds / 1 seed, wall ratio", f"{seeds['ratio']:.2f}", "< 3", "seeds"))
+for name, label in (("ballbalance", "ballbalance"), ("mjx-walker", "mjx-dmc/walker-walk")):
+    if result := read(f"{name}.json"):
+        rows.append((f"{label} training steps/s ({result['num_envs']} envs)", f"{result['train_sps']:,.0f}", "", name))
+if summary := read("host-walker/summary.json"):
+    rows.append(("host-side dmc/walker-walk, one update: steps/s", f"{summary['sps']:,.0f}", "runs", "host-walker"))
+if scaling := read("scaling.json"):
+    for row in scaling["rows"]:
+        rows.append((f"scaling: {row['placement']} on {row['devices']} device(s), {row['runs']} run(s)",
+                     f"{row['sps']:,.0f}", "", "scaling"))
+device = next((r["device"] for r in (read("cartpole.json"), read("seeds.json")) if r), "unknown")
+failed = [name for name, s in status.items() if s["exit_code"] != 0]
+lines = [f"# Device check{' (CPU smoke: tiny sizes, figures mean nothing)' if smoke else ''}", "",
+         f"Device: {device}. Failed or timed-out steps: {', '.join(failed) or 'none'} (logs in {out}).", "",
+         "| figure | value | aim | step |", "|---|---|---|---|"]
+lines += [f"| {figure} | {value} | {aim} | {name} |" for figure, value, aim, name in rows]
+lines += ["", "| step | exit code | wall s |", "|---|---|---|"]
+lines += [f"| {name} | {s['exit_code']} | {s['wall_seconds']} |" for name, s in status.items()]
+(out / "results.md").write_text("\n".join(lines) + "\n")
+(out / "results.json").write_text(json.dumps({"device": device, "smoke": smoke, "status": status,
+                                              "figures": [dict(zip(("figure", "value", "aim", "step"), r)) for r in rows]}, indent=2))
+print("\n".join(lines))
+EOF

@@ -1,0 +1,98 @@
+"""Training steps/s against the number of devices, for both placements of rpo_jax.devices.
+
+    python benchmarks/scaling.py --env cartpole --num-envs 4096 --runs 8 --json OUT.json
+    python benchmarks/scaling.py --force-host-devices 4 --num-envs 256 --runs 4   # CPU correctness run
+
+For each device count D in --devices (default 1, 2, 4, ... up to all local devices):
+- runs: --runs runs (seeds) of --num-envs environments each, split over D devices;
+- envs: one run of --num-envs environments, split over D devices (data parallel).
+Each program does --updates updates of the `isaacgym` preset (rpo, alpha 0.5), compiled ahead
+of time and timed best of --repeats; steps/s counts every run's environment steps.
+--force-host-devices N splits the host CPU into N devices (XLA's flag, set before JAX starts):
+they share the same cores, so on a CPU the figures check that every layout runs, not a speed-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="cartpole")
+    parser.add_argument("--num-envs", type=int, default=4096)
+    parser.add_argument("--runs", type=int, default=8, help="runs of the runs placement")
+    parser.add_argument("--updates", type=int, default=10)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--devices", type=int, nargs="+", help="device counts; default 1, 2, 4, ... up to all")
+    parser.add_argument("--force-host-devices", type=int, help="split the host CPU into this many devices")
+    parser.add_argument("--json", type=Path)
+    return parser.parse_args()
+
+
+def timed(placement, config, env, num_runs: int, updates: int, repeats: int) -> tuple[float, float]:
+    """(best seconds of `updates` updates of every run, compile seconds)."""
+    import jax
+
+    from rpo_jax import ppo
+
+    trainer = placement.make_trainer(config, env)
+    keys = jax.vmap(jax.random.PRNGKey)(jax.numpy.arange(num_runs))
+    hparams = jax.vmap(lambda _: ppo.Hyperparams.from_config(config))(jax.numpy.arange(num_runs))
+    init = placement.init_program(trainer)
+    state = jax.block_until_ready(init(keys, hparams))
+    start = time.perf_counter()
+    program = placement.chunk_program(trainer, updates, jax.eval_shape(init, keys, hparams))
+    compile_seconds = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        state, _ = jax.block_until_ready(program(state))
+        times.append(time.perf_counter() - start)
+    return min(times), compile_seconds
+
+
+def main() -> int:
+    args = parse_args()
+    if args.force_host_devices:
+        flag = f"--xla_force_host_platform_device_count={args.force_host_devices}"
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}"
+    import jax
+
+    from rpo_jax import devices, envs
+    from rpo_jax.config import PRESETS
+
+    available = len(jax.local_devices())
+    counts = args.devices or [2**i for i in range(available.bit_length()) if 2**i <= available]
+    env = envs.make_env(args.env)
+    config = dataclasses.replace(PRESETS["isaacgym"], num_envs=args.num_envs, rpo_alpha=0.5)
+    config = dataclasses.replace(config, total_timesteps=config.batch_size * args.updates)
+    rows = []
+    for placement_name, num_runs in (("runs", args.runs), ("envs", 1)):
+        for count in counts:
+            placement = devices.make_placement(count, placement_name == "envs", num_runs, config, args.env, False)
+            seconds, compile_seconds = timed(placement, config, env, num_runs, args.updates, args.repeats)
+            steps = num_runs * args.updates * config.batch_size
+            rows.append({
+                "placement": placement_name, "devices": count, "runs": num_runs, "num_envs": config.num_envs,
+                "sps": steps / seconds, "seconds": seconds, "compile_seconds": compile_seconds,
+            })  # fmt: skip
+            print(json.dumps(rows[-1]), flush=True)
+    result = {
+        "env": args.env, "preset": "isaacgym", "updates": args.updates, "device": jax.devices()[0].device_kind,
+        "platform": jax.devices()[0].platform, "forced_host_devices": args.force_host_devices, "rows": rows,
+    }  # fmt: skip
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
