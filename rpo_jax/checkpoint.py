@@ -13,11 +13,13 @@ after it was written (a truncated or deleted file: orbax's storage checksums its
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import shutil
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -98,7 +100,9 @@ class Checkpointer:
         `abstract_state` (CheckpointMismatch); one that cannot be read raises CheckpointDamaged."""
         update = self.manager.latest_step() if update is None else update
         try:
-            saved = self.manager.item_metadata(update)["state"]
+            # orbax logs a warning of its own for a state without metadata; the error below says it.
+            with _quiet_absl():
+                saved = self.manager.item_metadata(update)["state"]
         except READ_FAILURES as error:
             raise CheckpointDamaged(f"checkpoint at update {update} is damaged ({_first_line(error)})") from None
         saved_layout = {leaf.name: (tuple(leaf.shape), str(leaf.dtype)) for leaf in jax.tree.leaves(saved)}
@@ -159,6 +163,17 @@ class Checkpointer:
 
     def close(self) -> None:
         self.manager.close()
+
+
+@contextlib.contextmanager
+def _quiet_absl() -> Iterator[None]:
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def _ignore_callbacks_into_closed_loops() -> None:

@@ -16,7 +16,7 @@ import pytest
 
 from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import CHECKPOINT_DIR, PARAMS_FILE
+from rpo_jax.rundir import CHECKPOINT_DIR, LOCK_FILE, PARAMS_FILE
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
 TINY = [
@@ -113,10 +113,13 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
     saved = json.loads((tampered / "config.json").read_text())
     saved["config"]["hidden_sizes"] = [64, 64]  # the isaacgym preset trained [32, 32]
     (tampered / "config.json").write_text(json.dumps(saved))
-    before = sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*"))
+    def files():  # but the writers' lock, which the refused resume held while it checked
+        return sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*") if p.name != LOCK_FILE)
+
+    before = files()
     with pytest.raises(UsageError, match="does not match the config"):
         runner.train(runner.resumed_plan(tampered))
-    assert sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*")) == before
+    assert files() == before
     argv = ["--resume", str(tampered), "--env", "brax/ant"]
     with pytest.raises(UsageError, match="made with --env cartpole, not brax/ant"):
         train.make_plan(train.parse_args(argv), argv)
