@@ -22,6 +22,7 @@ from jax.sharding import Mesh, PartitionSpec
 from rpo_jax import devices, envs, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.devices import AXIS
+from rpo_jax.rundir import RunDir
 
 # A tiny Cartpole command: 4 updates, logged every update, no checkpoints.
 TINY_COMMAND = [
@@ -42,6 +43,26 @@ def run_command(args: list[str]) -> dict:
 def commands(out: Path, runs: list[list[str]]) -> dict:
     """Each of `runs` (extra flags, the last one the output directory's name) after TINY_COMMAND."""
     return {extra[-1]: run_command([*TINY_COMMAND, *extra[:-1], "--out", str(out / extra[-1])]) for extra in runs}
+
+
+def resumed(out: Path, flags: list[str]) -> dict:
+    """A run with checkpoints, then the same run resumed from its last checkpoint as if it had
+    been killed after it: whether the resumed run ends with the same parameters and rows."""
+    command = [*TINY_COMMAND, *flags, "--checkpoint-every", "64", "--out", str(out)]
+    first = run_command(command)
+    params, rows = RunDir(out).read_params(), without_sps(RunDir(out).read_metrics())
+    (out / "summary.json").unlink()
+    second = run_command(["--resume", str(out), "--quiet"])
+    return {
+        "codes": [first["code"], second["code"]],
+        "same_params": RunDir(out).read_params() == params,
+        "same_rows": without_sps(RunDir(out).read_metrics()) == rows,
+        "rows": len(rows),
+    }
+
+
+def without_sps(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "sps"} for row in rows]
 
 
 def mesh_of(count: int) -> Mesh:
@@ -114,6 +135,7 @@ CHECKS = {
     "commands": lambda directory, *runs: commands(directory, [json.loads(run) for run in runs]),
     "gradient": lambda directory, count: gradient_and_statistics(int(count)),
     "replicas": lambda directory, count: replicas(int(count)),
+    "resume": lambda directory, *flags: resumed(directory / "resumed", list(flags)),
     "learning": lambda directory, count, steps: learning(directory / "learning", int(count), int(steps)),
 }
 
