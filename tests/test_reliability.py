@@ -438,7 +438,7 @@ def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys
     lines = good.splitlines()
     results.write_text("\n".join([lines[0], lines[1].rsplit(",", 1)[0] + ",abc", *lines[2:]]) + "\n")
     assert report.main([str(directory)]) == 2
-    assert "line 2: learning_rate must be a number, got 'abc'" in one_line(capsys)
+    assert "line 2: eval_return must be a number, got 'abc'" in one_line(capsys)  # the last column
     results.write_text(good)
 
     (tmp_path / "file").write_text("mine")

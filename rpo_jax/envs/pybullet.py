@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import io
-from typing import Any
+import sys
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -24,10 +25,21 @@ SPECS = {
 }
 
 
+@contextlib.contextmanager
+def _sys_path_kept() -> Iterator[None]:
+    """pybullet_envs' modules put their own directory first on sys.path when imported, and its
+    `examples` package would then hide any other top-level `examples` (a user's environments)."""
+    saved = list(sys.path)
+    try:
+        yield
+    finally:
+        sys.path[:] = saved
+
+
 def _import_pybullet_envs() -> Any:
     # pybullet prints its build time and Minitaur its asset paths to stdout; gym warns on
     # stderr that it is unmaintained. Neither belongs in the trainer's output.
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()), _sys_path_kept():
         import gym
         import pybullet_envs  # noqa: F401  (registers the tasks with gym)
     return gym
@@ -35,7 +47,7 @@ def _import_pybullet_envs() -> Any:
 
 def _make_one(gym_id: str, index: int, seed: int) -> Any:
     gym = _import_pybullet_envs()
-    with contextlib.redirect_stdout(io.StringIO()):
+    with contextlib.redirect_stdout(io.StringIO()), _sys_path_kept():
         env = gym.make(gym_id)
     env.seed(int(np.random.SeedSequence([seed, index]).generate_state(1)[0]))
     return env
