@@ -133,8 +133,7 @@ def learning(out: Path, count: int, total_timesteps: int) -> dict:
 # name -> check(directory for its runs, *command-line arguments)
 CHECKS = {
     "commands": lambda directory, *runs: commands(directory, [json.loads(run) for run in runs]),
-    "gradient": lambda directory, count: gradient_and_statistics(int(count)),
-    "replicas": lambda directory, count: replicas(int(count)),
+    "gradient": lambda directory, count: {**gradient_and_statistics(int(count)), "replicas": replicas(int(count))},
     "resume": lambda directory, *flags: resumed(directory / "resumed", list(flags)),
     "learning": lambda directory, count, steps: learning(directory / "learning", int(count), int(steps)),
 }

@@ -116,10 +116,13 @@ def test_merged_normaliser_statistics_equal_those_of_the_whole_batch(gradients):
 
 
 @pytest.mark.parametrize(
-    "flags", [["--num-seeds", "3", "--devices", "2"], ["--devices", "2", "--shard-envs"]], ids=["runs", "envs"]
+    "flags",
+    [pytest.param(["--num-seeds", "3", "--devices", "2"], marks=pytest.mark.slow), ["--devices", "2", "--shard-envs"]],
+    ids=["runs", "envs"],
 )
 def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags):
-    # Split runs checkpoint the real runs and pad them again; a data-parallel run its stacked state.
+    # Split runs checkpoint the real runs and pad them again (25 s, slow); a data-parallel run
+    # checkpoints its stacked state, one slice per device.
     result = device_check(tmp_path, "resume", *flags)
     assert result == {"codes": [0, 0], "same_params": True, "same_rows": True, "rows": 4 * (3 if "3" in flags else 1)}
 
@@ -148,9 +151,9 @@ def test_bad_layouts_exit_2_with_one_line(tmp_path):
         assert not (tmp_path / name).exists()
 
 
-def test_data_parallel_devices_hold_the_same_parameters_and_statistics(tmp_path):
+def test_data_parallel_devices_hold_the_same_parameters_and_statistics(gradients):
     # Averaged gradients and merged statistics keep every device's copy identical, bit for bit.
-    result = device_check(tmp_path, "replicas", "4")
+    result = gradients["replicas"]
     assert result["leading"] == 4 and result["max_difference"] == 0.0
 
 
