@@ -5,6 +5,7 @@ line by import path and by registered name, resumed and evaluated; Gymnasium tas
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +25,13 @@ TINY = [
 
 @pytest.fixture(autouse=True)
 def examples_importable(monkeypatch):
-    """The repository's root on Python's path, as the current directory is under `python -m`."""
+    """The repository's root first on Python's path, as the current directory is under
+    `python -m`. pybullet_envs puts its own directory, which has an `examples` package, on the
+    path when it is imported (by the PyBullet tests of this process): whichever `examples` was
+    imported before is dropped for the test (and put back after it)."""
     monkeypatch.syspath_prepend(str(ROOT))
+    for name in [name for name in sys.modules if name == "examples" or name.startswith("examples.")]:
+        monkeypatch.delitem(sys.modules, name)
 
 
 def rows(out: Path) -> list[dict]:
