@@ -105,13 +105,13 @@ def new_plan(
     eval_every: int = 0, eval_episodes: int = 10, devices: int | None = None, shard_envs: bool = False,
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
-    check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
+    grid = check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
     if eval_every < 0 or eval_episodes < 1:
         raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
     if not RunDir(out).is_new():
         raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
     check_writable(out)
-    placement = placement_of(env, config, devices, shard_envs, len(parse_sweeps(sweep, config)) * num_seeds)
+    placement = placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)
     if eval_every and placement.count > 1:
         raise UsageError(f"--eval-every works on one device for now, not {placement.count}; give --devices 1")
     run_steps = config.num_updates * config.batch_size
@@ -132,9 +132,10 @@ def default_checkpoint_every(run_steps: int) -> int:
 def check_plan(
     env: str, config: Config, seed: int, num_seeds: int, sweep: Sequence[str], log_every: int | None,
     checkpoint_every: int | None,
-) -> None:  # fmt: skip
+) -> list[dict[str, float]]:  # fmt: skip
     """Refuses, as UsageError, every bad part of a plan but its directory: what `new_plan` checks
-    first, and what an experiment checks for all its runs before it writes anything."""
+    first, and what an experiment checks for all its runs before it writes anything. Returns the
+    sweep's grid."""
     config.validate()
     envs.env_spec(env)  # an unknown name is refused here, before anything is written
     if num_seeds < 1:
@@ -144,7 +145,7 @@ def check_plan(
         raise UsageError(f"--log-every must be >= 1, got {log_every}")
     if checkpoint_every is not None and checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {checkpoint_every}")
-    parse_sweeps(sweep, config)
+    return parse_sweeps(sweep, config)
 
 
 def check_seeds(seed: int, num_seeds: int) -> None:
