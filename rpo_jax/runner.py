@@ -95,6 +95,11 @@ class RunPlan:
         return range(self.seed, self.seed + self.num_seeds)
 
     @property
+    def eval_updates(self) -> int | None:
+        """Updates between evaluations; None when evaluation is off."""
+        return max(1, self.eval_every // self.config.batch_size) if self.eval_every else None
+
+    @property
     def run_dir(self) -> RunDir:
         return RunDir(self.out)
 
@@ -311,10 +316,6 @@ class Compiled:
     run_eval: Callable[[ppo.TrainState, jax.Array], jax.Array] | None = None
     eval_keys: jax.Array | None = None
 
-    def eval_updates(self, plan: RunPlan) -> int:
-        """Updates between evaluations."""
-        return max(1, plan.eval_every // plan.config.batch_size)
-
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
     """Trains every run of `plan` and returns the summary (also written to summary.json).
@@ -393,8 +394,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
     trainer = placement.make_trainer(config, env)
-    eval_updates = max(1, plan.eval_every // config.batch_size) if plan.eval_every else None
-    chunk = chunk_length(config.num_updates, at_most=eval_updates)
+    chunk = chunk_length(config.num_updates, at_most=plan.eval_updates)
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
@@ -486,7 +486,7 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     `first_update + chunk` (and after the last update), else None."""
     if compiled.run_eval is None:
         return None
-    every, done = compiled.eval_updates(plan), first_update + compiled.chunk
+    every, done = plan.eval_updates, first_update + compiled.chunk
     if done // every == first_update // every and done != plan.config.num_updates:
         return None
     return np.asarray(jax.device_get(compiled.run_eval(state, compiled.eval_keys)))
