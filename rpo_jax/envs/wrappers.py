@@ -5,7 +5,8 @@ observation normalisation). `vectorize` batches a single JAX environment or a ho
 
 Every batch wrapper defines `restart(state, key)` besides `reset`: fresh episodes in every
 environment that keep the running statistics in `state`, for a resumed run whose simulators
-were not in its checkpoint.
+were not in its checkpoint; and `draw_starts(state, key)`, which passes the trainer's call
+before each rollout down to a `VectorEnv`'s pool of initial states (`DrawsStarts`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rpo_jax.envs.protocol import BatchedEnv, Env, TimeStep, Vectorizable, first_step
+from rpo_jax.envs.protocol import BatchedEnv, DrawsStarts, Env, TimeStep, Vectorizable, first_step
 
 # --------------------------------------------------------------------------------------------
 # Adapter of environments that report `done`
@@ -67,45 +68,61 @@ class TimeLimit:
 
 
 @struct.dataclass
-class AutoResetState:
-    inner: Any
-    key: jax.Array
+class VectorEnvState:
+    envs: Any  # [N] the environments' states, under their time limits
+    starts: Any  # [N] fresh initial states, which the episodes that end take in turn
+    start_obs: jax.Array  # [N, obs_size] their first observations
+    next_start: jax.Array  # [] how many of `starts` have been taken
 
 
-class AutoReset:
-    """Starts a new episode inside `step` when one ends. `obs` becomes the new episode's first
-    observation; `final_obs`, the flags and the reward stay those of the step that ended it."""
-
-    def __init__(self, env: Env) -> None:
-        self.env, self.spec = env, env.spec
-
-    def reset(self, key: jax.Array) -> tuple[AutoResetState, TimeStep]:
-        key, reset_key = jax.random.split(key)
-        state, ts = self.env.reset(reset_key)
-        return AutoResetState(state, key), ts
-
-    def step(self, state: AutoResetState, action: jax.Array) -> tuple[AutoResetState, TimeStep]:
-        inner, ts = self.env.step(state.inner, action)
-        key, reset_key = jax.random.split(state.key)
-        fresh, fresh_ts = self.env.reset(reset_key)
-        done = ts.terminated | ts.truncated
-        inner = jax.tree.map(lambda new, old: jnp.where(done, new, old), fresh, inner)
-        ts = ts.replace(obs=jnp.where(done, fresh_ts.obs, ts.obs), final_obs=ts.obs)
-        return AutoResetState(inner, key), ts
+def select(done: jax.Array, new: Any, old: Any) -> Any:
+    """`new` where `done` [N], else `old`, leaf by leaf over pytrees with a leading [N] axis."""
+    return jax.tree.map(lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
 class VectorEnv:
-    """`num_envs` copies of one JAX environment, auto-reset, stepped in one vmapped call."""
+    """`num_envs` copies of one JAX environment under `TimeLimit`, stepped in one vmapped call,
+    and auto-reset: when an episode ends, `obs` becomes the new episode's first observation
+    while `final_obs`, the flags and the reward stay those of the step that ended it.
+
+    A new episode starts from the next unused state of a pool of `num_envs` fresh initial
+    states (`starts`), drawn with the environment's own `reset` by `draw_starts`, which the
+    trainer calls once before each rollout. So the reset is paid once per environment and
+    rollout, not at every step inside the vmap as a select of a reset computed for every
+    environment, and every episode still starts from its own draw of the reset distribution.
+    Only when more episodes end between two draws than there are environments do later ones
+    take the pool's states a second time, in turn."""
 
     def __init__(self, env: Env, num_envs: int) -> None:
-        self.env = AutoReset(TimeLimit(env))
+        self.env = TimeLimit(env)
         self.spec, self.num_envs = env.spec, num_envs
+        # Jitted, so that a program which resets in two places (the first state and the pools
+        # of starts) traces the environment's reset once.
+        self._reset = jax.jit(self.env.reset)
 
-    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
-        return jax.vmap(self.env.reset)(jax.random.split(key, self.num_envs))
+    def reset(self, key: jax.Array) -> tuple[VectorEnvState, TimeStep]:
+        # The environments and the first pool in one vmapped reset: one copy of it to compile.
+        n = self.num_envs
+        states, ts = jax.vmap(self._reset)(jax.random.split(key, 2 * n))
+        first, rest = (lambda x: x[:n]), (lambda x: x[n:])
+        state = VectorEnvState(jax.tree.map(first, states), jax.tree.map(rest, states), ts.obs[n:], jnp.zeros((), jnp.int32))
+        return state, jax.tree.map(first, ts)
 
-    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
-        return jax.vmap(self.env.step)(state, action)
+    def draw_starts(self, state: VectorEnvState, key: jax.Array) -> VectorEnvState:
+        """`state` with a new pool of initial states."""
+        starts, ts = jax.vmap(self._reset)(jax.random.split(key, self.num_envs))
+        return VectorEnvState(state.envs, starts, ts.obs, jnp.zeros((), jnp.int32))
+
+    def step(self, state: VectorEnvState, action: jax.Array) -> tuple[VectorEnvState, TimeStep]:
+        envs, ts = jax.vmap(self.env.step)(state.envs, action)
+        done = ts.terminated | ts.truncated
+        # The k-th episode to end since the draw takes start k (mod N): a cumulative count, so
+        # each ending episode gets a different start whichever environments they are.
+        taken = (state.next_start + jnp.cumsum(done) - 1) % self.num_envs
+        envs = select(done, jax.tree.map(lambda pool: pool[taken], state.starts), envs)
+        obs = jnp.where(done[:, None], state.start_obs[taken], ts.obs)
+        next_start = state.next_start + done.sum(dtype=jnp.int32)
+        return state.replace(envs=envs, next_start=next_start), ts.replace(obs=obs, final_obs=ts.obs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,6 +154,12 @@ class EpisodeStatistics:
         # Nothing outlives an episode here: the running returns and lengths start again.
         return self.reset(key)
 
+    def draw_starts(self, state: EpisodeStatisticsState, key: jax.Array) -> EpisodeStatisticsState:
+        # Host pools and other batched environments reset their episodes themselves.
+        if not isinstance(self.env, DrawsStarts):
+            return state
+        return state.replace(inner=self.env.draw_starts(state.inner, key))
+
     def step(self, state: EpisodeStatisticsState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)
         episode_return = state.episode_return + ts.reward
@@ -167,6 +190,9 @@ class ClipAction:
 
     def restart(self, state: Any, key: jax.Array) -> tuple[Any, TimeStep]:
         return self.env.restart(state, key)
+
+    def draw_starts(self, state: Any, key: jax.Array) -> Any:
+        return self.env.draw_starts(state, key)
 
     def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
         return self.env.step(state, jnp.clip(action, self.low, self.high))
@@ -242,6 +268,9 @@ class NormalizeObservation:
         inner, ts = self.env.restart(state.inner, key)
         return self._output(inner, state.obs_stats, ts, update=False)
 
+    def draw_starts(self, state: NormalizeObservationState, key: jax.Array) -> NormalizeObservationState:
+        return state.replace(inner=self.env.draw_starts(state.inner, key))
+
     @staticmethod
     def statistics(state: NormalizeObservationState) -> RunningMeanStd:
         """The running statistics of the observations in `state` (what a saved policy keeps)."""
@@ -288,6 +317,9 @@ class NormalizeReward:
     def restart(self, state: NormalizeRewardState, key: jax.Array) -> tuple[NormalizeRewardState, TimeStep]:
         inner, ts = self.env.restart(state.inner, key)
         return NormalizeRewardState(inner, jnp.zeros(ts.reward.shape), state.return_stats), ts
+
+    def draw_starts(self, state: NormalizeRewardState, key: jax.Array) -> NormalizeRewardState:
+        return state.replace(inner=self.env.draw_starts(state.inner, key))
 
     def step(self, state: NormalizeRewardState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)
