@@ -69,8 +69,11 @@ class Cartpole:
         from rpo_jax.envs.mjx_support import mjx, mujoco
 
         self.mj_model = mujoco.MjModel.from_xml_string(CARTPOLE_XML)
-        self.model = mjx.put_model(self.mj_model)
-        self.data_template = mjx.make_data(self.mj_model)
+        # On this process's device: MJX's default, jax.devices()[0], is process 0's in a run of
+        # several processes (rpo_jax.devices), which the others cannot read the model from.
+        device = jax.local_devices()[0]
+        self.model = mjx.put_model(self.mj_model, device=device)
+        self.data_template = mjx.make_data(self.mj_model, device=device)
         self.control_dt = self.substeps * float(self.mj_model.opt.timestep)
 
     @staticmethod
