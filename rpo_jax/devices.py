@@ -19,9 +19,9 @@ With one device, or a host-side environment (whose simulators are stepped throug
 on one device), the program is the plain `jax.jit(jax.vmap(...))` of a single device.
 
 Several processes (`join_processes`, one per machine or per GPU) train as one: the mesh holds
-every process's devices, each process runs the same program on its own, and the results come
-back to every host whole (`Placement.real_runs`). Runs are then padded to fill every device, since each
-process must hold a share. Process 0 writes the run's files (`is_primary`).
+every process's devices, each process runs the same program, and the results come back to
+every host whole (`Placement.real_runs`). Runs are then padded to fill every device, since
+each process must hold a share. Process 0 alone writes the run's files (`is_primary`).
 """
 
 from __future__ import annotations
