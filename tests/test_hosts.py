@@ -112,9 +112,17 @@ def test_a_run_refused_by_process_0_is_refused_by_every_process(tmp_path):
     assert printed(results[1]) == ["error: process 0 refused the run (its error says why)"]
 
 
-def test_host_side_simulators_are_refused_with_several_processes(tmp_path):
-    results = two_processes(["--env", "gym/BipedalWalker-v3", "--quiet"], (tmp_path / "run", tmp_path / "run"))
-    message = "error: --env gym/BipedalWalker-v3 steps host-side simulators, which train in one process, not 2"
+@pytest.mark.parametrize(
+    "env, reason",
+    [
+        ("gym/BipedalWalker-v3", "steps host-side simulators, which train in one process, not 2"),
+        ("mjx-dmc/cartpole-balance", "keeps its model on process 0's device, so it trains in one process, not 2"),
+    ],
+    ids=["host", "playground"],
+)  # fmt: skip
+def test_environments_of_one_process_are_refused_with_several(tmp_path, env, reason):
+    results = two_processes(["--env", env, "--quiet"], (tmp_path / "run", tmp_path / "run"))
+    message = f"error: --env {env} {reason}"
     assert [(result["code"], printed(result)) for result in results] == [(2, [message])] * 2
     assert not (tmp_path / "run").exists()
 
