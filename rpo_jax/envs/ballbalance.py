@@ -229,18 +229,14 @@ class BallBalance:
     spec = SPEC
 
     def __init__(self) -> None:
-        from rpo_jax.envs.mjx_support import mjx, mujoco
+        from rpo_jax.envs.mjx_support import mujoco, put_model
 
         self.mj_model = mujoco.MjModel.from_xml_string(ballbalance_xml())
-        # On this process's device: MJX's default, jax.devices()[0], is process 0's in a run of
-        # several processes (rpo_jax.devices), which the others cannot read the model from.
-        device = jax.local_devices()[0]
         with warnings.catch_warnings():
             # MJX warns about the 40-gon faces for its polygon colliders; the sphere-convex one
             # used here walks a face's edges exactly, whatever their number.
             warnings.filterwarnings("ignore", "Mesh .* coplanar face", UserWarning)
-            self.model = mjx.put_model(self.mj_model, device=device)
-        self.data_template = mjx.make_data(self.mj_model, device=device)
+            self.model, self.data_template = put_model(self.mj_model)
         m = self.mj_model
         lower = [m.joint(f"lower_hinge{i}") for i in range(3)]
         self.knee_qpos = np.array([j.qposadr[0] for j in lower])

@@ -66,14 +66,10 @@ class Cartpole:
     spec = SPEC
 
     def __init__(self) -> None:
-        from rpo_jax.envs.mjx_support import mjx, mujoco
+        from rpo_jax.envs.mjx_support import mujoco, put_model
 
         self.mj_model = mujoco.MjModel.from_xml_string(CARTPOLE_XML)
-        # On this process's device: MJX's default, jax.devices()[0], is process 0's in a run of
-        # several processes (rpo_jax.devices), which the others cannot read the model from.
-        device = jax.local_devices()[0]
-        self.model = mjx.put_model(self.mj_model, device=device)
-        self.data_template = mjx.make_data(self.mj_model, device=device)
+        self.model, self.data_template = put_model(self.mj_model)
         self.control_dt = self.substeps * float(self.mj_model.opt.timestep)
 
     @staticmethod
