@@ -24,6 +24,7 @@ from typing import Any, Iterator
 import jax
 import jax.numpy as jnp
 import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
 
 # Damaged on disk: the file read fails (ValueError from tensorstore's checksums and decoders,
 # KeyError for a missing item, OSError for a missing file).
@@ -154,11 +155,15 @@ class Checkpointer:
         return None
 
     def _set_aside(self, update: int) -> None:
-        directory = Path(self.manager.directory) / str(update)
-        aside = directory.with_name(f"damaged-{update}")
-        if aside.exists():
-            shutil.rmtree(aside)
-        directory.rename(aside)
+        # By process 0, orbax's primary host, which writes the checkpoints of several processes;
+        # every process waits for it before it reads the checkpoints there again.
+        if jax.process_index() == 0:
+            directory = Path(self.manager.directory) / str(update)
+            aside = directory.with_name(f"damaged-{update}")
+            if aside.exists():
+                shutil.rmtree(aside)
+            directory.rename(aside)
+        multihost_utils.sync_global_devices(f"rpo_jax: checkpoint {update} set aside")
         self.manager.reload()
 
     def close(self) -> None:

@@ -17,15 +17,22 @@ one run's environments split across them (data parallel). Built on `jax.sharding
 
 With one device, or a host-side environment (whose simulators are stepped through callbacks
 on one device), the program is the plain `jax.jit(jax.vmap(...))` of a single device.
+
+Several processes (`join_processes`, one per machine or per GPU) train as one: the mesh holds
+every process's devices, each process runs the same program, and the results come back to
+every host whole (`Placement.real_runs`). Runs are then padded to fill every device, since
+each process must hold a share. Process 0 alone writes the run's files (`is_primary`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+import re
+from typing import Any, Callable, TypeVar
 
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from rpo_jax import envs, ppo
@@ -33,7 +40,12 @@ from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
 
 AXIS = "devices"
+T = TypeVar("T")
 PLACEMENTS = ("one device", "runs", "envs")
+# Suites whose models MJX puts on its default device, jax.devices()[0], which with several
+# processes is process 0's: the others cannot read them. (Cartpole and BallBalance put theirs
+# on each process's own device.)
+PROCESS_0_SUITES = ("brax/", "mjx-dmc/")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,6 +55,7 @@ class Placement:
     mesh: Mesh | None
     shard_envs: bool
     num_runs: int
+    processes: int = 1  # the processes whose devices make up the mesh
 
     @property
     def count(self) -> int:
@@ -59,7 +72,7 @@ class Placement:
 
     def describe(self) -> dict[str, Any]:
         """What config.json and summary.json record of the placement."""
-        return {"placement": self.kind, "devices": self.count, "padded_runs": self.padded_runs}
+        return {"placement": self.kind, "devices": self.count, "padded_runs": self.padded_runs, "processes": self.processes}
 
     def make_trainer(self, config: Config, env: envs.Env) -> ppo.Trainer:
         if self.kind == "envs":
@@ -100,9 +113,9 @@ class Placement:
         """The R real runs [R, ...] of a placed state or metrics, on the host: the padding
         dropped, or device 0's slice of a data-parallel state (its parameters, statistics and
         metrics are every device's)."""
-        if self.kind == "envs":
-            return jax.device_get(jax.tree.map(lambda leaf: leaf[0], tree))
-        return jax.device_get(jax.tree.map(lambda leaf: leaf[: self.num_runs], tree))
+        # Whole on every host: with several processes, each holds only its devices' shares.
+        host = multihost_utils.process_allgather(tree, tiled=True)
+        return jax.tree.map(lambda leaf: leaf[0] if self.kind == "envs" else leaf[: self.num_runs], host)
 
     def checkpoint_state(self, state: ppo.TrainState) -> Any:
         """What a checkpoint holds: the real runs' state, or the whole stacked data-parallel one."""
@@ -112,15 +125,17 @@ class Placement:
         """The abstract state a checkpoint is restored into (see `checkpoint_state`)."""
         if self.kind == "envs":
             return self._placed_abstract(abstract_state)
-        device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        whole: jax.sharding.Sharding = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        if self.kind == "runs":  # whole on every device of the mesh (of every process), to be padded and split
+            whole = NamedSharding(self.mesh, PartitionSpec())
         return jax.tree.map(
-            lambda leaf: jax.ShapeDtypeStruct((self.num_runs, *leaf.shape[1:]), leaf.dtype, sharding=device), abstract_state
+            lambda leaf: jax.ShapeDtypeStruct((self.num_runs, *leaf.shape[1:]), leaf.dtype, sharding=whole), abstract_state
         )
 
     def from_checkpoint(self, restored: Any) -> Any:
         """A restored checkpoint's state, placed for training."""
         if self.kind == "runs":
-            return jax.device_put(pad_runs(restored, self.padded_runs), self._sharding())
+            return jax.jit(lambda tree: pad_runs(tree, self.padded_runs), out_shardings=self._sharding())(restored)
         return restored
 
 
@@ -145,14 +160,18 @@ def pad_runs(tree: Any, runs: int) -> Any:
 def make_placement(
     devices: int | None, shard_envs: bool, num_runs: int, config: Config, env_name: str, runs_on_host: bool
 ) -> Placement:
-    """The placement of `num_runs` runs on `devices` local devices (None: all of them), checked:
-    bad layouts raise UsageError naming what is allowed."""
-    available = jax.local_devices()
+    """The placement of `num_runs` runs on `devices` local devices of every process (None: all of
+    them), checked: bad layouts raise UsageError naming what is allowed."""
+    available, processes = jax.local_devices(), jax.process_count()
     if devices is not None and devices < 1:
         raise UsageError(f"--devices must be >= 1, got {devices}")
     if devices is not None and devices > len(available):
         raise UsageError(f"--devices {devices}: only {len(available)} local {available[0].platform} device(s) here")
+    if processes > 1 and env_name.startswith(PROCESS_0_SUITES):
+        raise UsageError(f"--env {env_name} keeps its model on process 0's device, so it trains in one process, not {processes}")
     if runs_on_host:
+        if processes > 1:
+            raise UsageError(f"--env {env_name} steps host-side simulators, which train in one process, not {processes}")
         if shard_envs or (devices or 1) > 1:
             raise UsageError(
                 f"--env {env_name} steps host-side simulators, which train on one device: give --devices 1 and no --shard-envs"
@@ -160,17 +179,83 @@ def make_placement(
         return Placement(None, False, num_runs)
     count = len(available) if devices is None else devices
     if shard_envs:
-        check_env_split(config, count)
-    else:
+        check_env_split(config, count * processes)
+    elif processes == 1:  # with several, every process must hold runs: they are padded instead
         count = min(count, num_runs)
-    if count == 1:
+    if count == 1 and processes == 1:
         return Placement(None, False, num_runs)
-    return Placement(Mesh(np.asarray(available[:count]), (AXIS,)), shard_envs, num_runs)
+    chosen = [device for process in range(processes) for device in _devices_of(process)[:count]]
+    return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes)
+
+
+def join_processes(coordinator: str | None, num_processes: int | None, process_id: int | None, detect: bool) -> None:
+    """Joins this process to the others of a run of several processes (`jax.distributed.initialize`,
+    which must come before any other use of JAX): from all three of `coordinator` (process 0's
+    HOST:PORT), `num_processes` and `process_id`, or with `detect`, from the cluster job that JAX
+    recognises (SLURM, Open MPI, ...) for those not given. None of them: one process alone."""
+    given = {"--coordinator": coordinator, "--num-processes": num_processes, "--process-id": process_id}
+    missing = [flag for flag, value in given.items() if value is None]
+    if not detect and len(missing) == len(given):
+        return
+    if not detect and missing:
+        raise UsageError(
+            f"{', '.join(missing)} missing: give all of --coordinator, --num-processes and --process-id, "
+            "or --distributed to read what is not given from the cluster job (SLURM, Open MPI)"
+        )
+    if coordinator is not None and not re.fullmatch(r".+:\d+", coordinator):
+        raise UsageError(f"--coordinator must be HOST:PORT (process 0's address and a free port), got {coordinator}")
+    if num_processes is not None and num_processes < 1:
+        raise UsageError(f"--num-processes must be >= 1, got {num_processes}")
+    if process_id is not None and not 0 <= process_id < (num_processes or process_id + 1):
+        below = "" if num_processes is None else f" and below --num-processes {num_processes}"
+        raise UsageError(f"--process-id must be >= 0{below}, got {process_id}")
+    try:
+        # Flags given in full are the whole layout: JAX's detection would read a cluster job's instead.
+        method = None if detect else "deactivate"
+        jax.distributed.initialize(coordinator, num_processes, process_id, cluster_detection_method=method)
+    except (RuntimeError, ValueError) as error:
+        detail = str(error).strip().splitlines()[0][:200] if str(error).strip() else type(error).__name__
+        hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
+        hint = hint if detect else ""
+        raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
+
+
+def refused_together(make: Callable[[], T]) -> T:
+    """`make()`, refused on every process when it is refused (UsageError) on any: process 0
+    alone checks the run directory, and a process that went on would wait for it in vain."""
+    error = None
+    try:
+        made = make()
+    except UsageError as raised:
+        error = raised
+    if jax.process_count() > 1:
+        refused = multihost_utils.process_allgather(np.int32(error is not None))
+        if error is None and refused.any():
+            error = UsageError(f"process {int(np.argmax(refused))} refused the run (its error says why)")
+    if error is not None:
+        raise error
+    return made
+
+
+def _devices_of(process: int) -> list[jax.Device]:
+    return [device for device in jax.devices() if device.process_index == process]
+
+
+def is_primary() -> bool:
+    """Whether this process writes the run's files: the only process, or process 0 of several."""
+    return jax.process_index() == 0
 
 
 def check_resumable(saved_record: dict[str, Any], placement: Placement, out: Any) -> None:
-    """A data-parallel run's checkpoints hold one slice per device: it resumes on as many."""
+    """A data-parallel run's checkpoints hold one slice per device: it resumes on as many. A run
+    of several processes resumes on the same processes and devices, and one of one process on one."""
     saved_kind, saved_count = saved_record.get("placement", PLACEMENTS[0]), saved_record.get("devices", 1)
+    saved_processes = saved_record.get("processes", 1)
+    if saved_processes != placement.processes or (saved_processes > 1 and saved_count != placement.count):
+        raise UsageError(
+            f"--resume {out}: the run was trained by {saved_processes} process(es) on {saved_count} device(s), and would "
+            f"resume by {placement.processes} on {placement.count}; a run resumes on the process layout it was trained on"
+        )
     if "envs" in (saved_kind, placement.kind) and (saved_kind, saved_count) != (placement.kind, placement.count):
         raise UsageError(
             f"--resume {out}: the run was trained as {saved_kind} on {saved_count} device(s), and would resume as "

@@ -106,10 +106,11 @@ class RunDir:
     def read_metrics(self) -> list[dict[str, Any]]:
         return [json.loads(line) for line in (self.path / METRICS_FILE).read_text().splitlines()]
 
-    def cut_metrics(self, size: int) -> list[dict[str, Any]]:
+    def cut_metrics(self, size: int, cut: bool = True) -> list[dict[str, Any]]:
         """Cuts metrics.jsonl back to its first `size` bytes (what a checkpoint recorded) and
-        returns the rows kept. A file shorter than that (or missing) lost rows the checkpoint
-        counts on: refused, never padded."""
+        returns the rows kept; with `cut` False (a process that does not write the run) only
+        reads them. A file shorter than that (or missing) lost rows the checkpoint counts on:
+        refused, never padded."""
         path = self.path / METRICS_FILE
         have = path.stat().st_size if path.is_file() else None
         if size and (have is None or have < size):
@@ -118,10 +119,10 @@ class RunDir:
                 f"{path} {found} but the checkpoint counts on its first {size}; its rows were lost, "
                 "so this run cannot be resumed exactly: start it again in a new --out"
             )
-        with open(path, "a+b") as metrics:
-            metrics.truncate(size)
-            metrics.seek(0)
-            return [json.loads(line) for line in metrics.read().splitlines()]
+        if cut:
+            with open(path, "a+b") as metrics:
+                metrics.truncate(size)
+        return [json.loads(line) for line in path.read_bytes()[:size].splitlines()] if size else []
 
     def append_metrics(self) -> IO[bytes]:
         # Unbuffered, so that a failed write (a full disk) can be cut back to whole rows.

@@ -33,6 +33,7 @@ from flax import serialization
 from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
+from rpo_jax.devices import is_primary
 from rpo_jax.errors import Diverged, Interrupted, UsageError
 from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
@@ -114,9 +115,10 @@ def new_plan(
     grid = check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
     if eval_every < 0 or eval_episodes < 1:
         raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
-    if not RunDir(out).is_new():
-        raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
-    check_writable(out)
+    if is_primary():  # the one process that writes it (the others may find it begun)
+        if not RunDir(out).is_new():
+            raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
+        check_writable(out)
     placement = placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)
     if eval_every and placement.count > 1:
         raise UsageError(f"--eval-every works on one device for now, not {placement.count}; give --devices 1")
@@ -323,9 +325,16 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
 
     One process at a time writes a run directory (`rundir.hold_lock`). A new run that fails
     before its first checkpoint leaves nothing to resume, so its directory is removed and the
-    same command can run again; after a checkpoint, and after Ctrl-C, `--resume` continues it."""
+    same command can run again; after a checkpoint, and after Ctrl-C, `--resume` continues it.
+
+    Of several processes (`devices.join_processes`), each trains its share and returns the
+    summary, but only process 0 writes the run directory and calls the sinks and `progress`;
+    the others write only their shares of the checkpoints (orbax's multi-process saves)."""
     grid = parse_sweeps(plan.sweep, plan.config)
     env = envs.make_env(plan.env)
+    if not is_primary():
+        with _interruptible(plan.out), _out_of_memory_refused():
+            return train_locked(plan, env, grid, (), None)
     existed = plan.out.exists()
     with hold_lock(plan.out):
         if not plan.resuming and not plan.run_dir.is_new():
@@ -353,14 +362,15 @@ def train_locked(
     runs = describe_runs(plan, grid)
     run_dir = plan.run_dir
     placement = placement_of(plan.env, plan.config, plan.devices, plan.shard_envs, len(runs))
-    if not plan.resuming:
-        run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
-    else:
+    primary = is_primary()
+    if plan.resuming:
         devices.check_resumable(run_dir.read_config(), placement, plan.out)
+    elif primary:
+        run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
     compiled = compile_runs(plan, env, runs, placement)
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
     # the sinks from the rows kept, so nothing is logged twice.
-    kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"])
+    kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"], cut=primary)
     for sink in sinks:
         sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
@@ -371,9 +381,10 @@ def train_locked(
         for sink in sinks:
             sink.close()
     params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
-    run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
-    run_dir.write_summary(summary)
+    if primary:
+        run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
+        run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
 
 
@@ -507,7 +518,8 @@ def train_chunks(
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
     train_start = time.perf_counter() - record["train_seconds"]
     steps_before, resumed_at, last_checkpoint = record["update"] * config.batch_size, time.perf_counter(), record["update"]
-    with plan.run_dir.append_metrics() as metrics_file:
+    # Only process 0 logs (None: another process); every process computes the same rows.
+    with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
             state, (metrics, diagnostics) = compiled.run_chunk(state)
             metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
@@ -517,21 +529,24 @@ def train_chunks(
             nonfinite = first_nonfinite(metrics, diagnostics)
             if nonfinite:
                 # The updates before it are finite and logged; it and the state after it are not kept.
-                write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
+                if metrics_file:
+                    write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
                 raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
             eval_start = time.perf_counter()
             eval_returns = evaluate_after_chunk(plan, compiled, state, first_update)
             resumed_at += time.perf_counter() - eval_start  # steps/s counts training only
             rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns)
-            write_rows(metrics_file, rows)
+            if metrics_file:
+                write_rows(metrics_file, rows)
             record_returns(rows, logged_returns)
             for sink in sinks:
                 sink.write(rows)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 train_seconds = time.perf_counter() - train_start
+                metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
                 checkpointer.save(
                     updates_done, compiled.placement.checkpoint_state(state),
-                    {"update": updates_done, "metrics_bytes": sync(metrics_file), "train_seconds": train_seconds},
+                    {"update": updates_done, "metrics_bytes": metrics_bytes, "train_seconds": train_seconds},
                 )  # fmt: skip
                 last_checkpoint = updates_done
             if progress:

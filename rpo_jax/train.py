@@ -4,6 +4,7 @@
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
     python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
+    python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
 Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
 parameters (see `rpo_jax.load_policy`) to --out, and checkpoints (see `rpo_jax.checkpoint`)
@@ -77,10 +78,18 @@ class TrainArgs:
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
     devices: int | None = None
-    """local devices to train on; None: all. The runs (seeds x sweep points) are split across them,
+    """local devices to train on, in each process; None: all. The runs (seeds x sweep points) are split across them,
     at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
     shard_envs: bool = False
     """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
+    coordinator: str | None = None
+    """HOST:PORT of process 0, to train as one of --num-processes processes (one per machine or GPU) with --process-id"""
+    num_processes: int | None = None
+    """processes that train together, each on its --devices; process 0 writes --out (see --coordinator)"""
+    process_id: int | None = None
+    """this process's index among --num-processes, from 0 (see --coordinator)"""
+    distributed: bool = False
+    """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
     quiet: bool = False
     """no progress display"""
 
@@ -138,6 +147,8 @@ def one_line(message: str) -> str:
 
 # The flags of the tracker: how a process reports, not what the runs are, so --resume takes any.
 TRACKING_FIELDS = ("track", "wandb_project", "wandb_entity", "wandb_mode", "wandb_group")
+# How the processes meet, not what the runs are: --resume takes any, and checks the layout they make.
+PROCESS_FIELDS = ("coordinator", "num_processes", "process_id", "distributed")
 
 
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
@@ -150,7 +161,8 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
     if args.out is not None and args.out.resolve() != args.resume.resolve():
         raise UsageError(f"--out {args.out} differs from --resume {args.resume}; a resumed run continues in its own directory")
     values = {**dataclasses.asdict(args), **dataclasses.asdict(args.config)}
-    for name in sorted(given - {"resume", "out", "quiet", "help", "config", "compile_cache"} - set(TRACKING_FIELDS)):
+    ignored = {"resume", "out", "quiet", "help", "config", "compile_cache", *TRACKING_FIELDS, *PROCESS_FIELDS}
+    for name in sorted(given - ignored):
         value, saved_value = values[name], saved[name]
         if isinstance(value, (tuple, list)):
             value, saved_value = list(value), list(saved_value)
@@ -218,8 +230,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = parse_args(argv)
-        plan = make_plan(args, argv)
-        summary = train_with_display(plan, args.quiet, args)
+        from rpo_jax import devices  # JAX, first used here: the processes join before anything else
+
+        devices.join_processes(args.coordinator, args.num_processes, args.process_id, args.distributed)
+        plan = devices.refused_together(lambda: make_plan(args, argv))
+        summary = train_with_display(plan, args.quiet or not devices.is_primary(), args)
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:
@@ -232,7 +247,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # before the run directory was made: nothing to continue
         print("interrupted; nothing was written", file=sys.stderr)
         return 130
-    print_summary(summary)
+    if devices.is_primary():
+        print_summary(summary)
     return 0
 
 

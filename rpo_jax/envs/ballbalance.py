@@ -229,15 +229,14 @@ class BallBalance:
     spec = SPEC
 
     def __init__(self) -> None:
-        from rpo_jax.envs.mjx_support import mjx, mujoco
+        from rpo_jax.envs.mjx_support import mujoco, put_model
 
         self.mj_model = mujoco.MjModel.from_xml_string(ballbalance_xml())
         with warnings.catch_warnings():
             # MJX warns about the 40-gon faces for its polygon colliders; the sphere-convex one
             # used here walks a face's edges exactly, whatever their number.
             warnings.filterwarnings("ignore", "Mesh .* coplanar face", UserWarning)
-            self.model = mjx.put_model(self.mj_model)
-        self.data_template = mjx.make_data(self.mj_model)
+            self.model, self.data_template = put_model(self.mj_model)
         m = self.mj_model
         lower = [m.joint(f"lower_hinge{i}") for i in range(3)]
         self.knee_qpos = np.array([j.qposadr[0] for j in lower])

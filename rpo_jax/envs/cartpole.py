@@ -66,11 +66,10 @@ class Cartpole:
     spec = SPEC
 
     def __init__(self) -> None:
-        from rpo_jax.envs.mjx_support import mjx, mujoco
+        from rpo_jax.envs.mjx_support import mujoco, put_model
 
         self.mj_model = mujoco.MjModel.from_xml_string(CARTPOLE_XML)
-        self.model = mjx.put_model(self.mj_model)
-        self.data_template = mjx.make_data(self.mj_model)
+        self.model, self.data_template = put_model(self.mj_model)
         self.control_dt = self.substeps * float(self.mj_model.opt.timestep)
 
     @staticmethod

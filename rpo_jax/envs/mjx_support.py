@@ -7,11 +7,24 @@ which MuJoCo fixes when it is first imported.
 
 import contextlib
 import io
+from typing import Any
 
+import jax
 import mujoco
 
 # mujoco.mjx prints (not logs) a line when its optional warp backend is missing; keep stdout clean.
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
 
-__all__ = ["mjx", "mujoco"]
+
+
+def put_model(mj_model: mujoco.MjModel) -> tuple[Any, Any]:
+    """The MJX model of `mj_model` and its data template, on this process's first device.
+
+    MJX's default, jax.devices()[0], is process 0's device in a run of several processes
+    (rpo_jax.devices), whose model the other processes cannot read."""
+    device = jax.local_devices()[0]
+    return mjx.put_model(mj_model, device=device), mjx.make_data(mj_model, device=device)
+
+
+__all__ = ["mjx", "mujoco", "put_model"]

@@ -1,0 +1,195 @@
+"""Several processes joined with jax.distributed (rpo_jax.devices.join_processes), as processes on
+localhost with one forced host CPU device each and JAX's CPU collectives (gloo, its default on
+CPU): they train as one process does, only process 0 writes the run, a resumed run continues
+exactly, and bad process layouts are refused in one line."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from flax import serialization
+
+from rpo_jax import train
+from rpo_jax.devices import Placement, check_resumable
+from rpo_jax.errors import UsageError
+from rpo_jax.rundir import RunDir
+
+ROOT = Path(__file__).resolve().parent.parent
+# A tiny Cartpole command: 4 updates, logged every update.
+TINY = [
+    "--env", "cartpole", "--num-envs", "8", "--num-steps", "8", "--num-minibatches", "2", "--update-epochs", "2",
+    "--total-timesteps", str(8 * 8 * 4), "--log-every", "1", "--quiet",
+]  # fmt: skip
+# Without a cluster job's variables, which --distributed would read (a test run inside SLURM).
+ENVIRONMENT = {
+    **{name: value for name, value in os.environ.items() if not name.startswith(("SLURM_", "OMPI_", "PMI_"))},
+    "PYTHONPATH": str(ROOT),
+    "JAX_PLATFORMS": "cpu",
+}
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        return probe.getsockname()[1]
+
+
+def command(args: list[str], devices: int = 1) -> subprocess.Popen:
+    environment = {**ENVIRONMENT, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "rpo_jax.train", *args], env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+
+
+def finished(processes: list[subprocess.Popen]) -> list[dict]:
+    """Each process's exit code, stdout and stderr; all are killed if one outlives the timeout."""
+    try:
+        outputs = [process.communicate(timeout=300) for process in processes]
+    finally:
+        for process in processes:
+            process.kill()
+    return [
+        {"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)
+    ]
+
+
+def two_processes(args: list[str], outs: tuple[Path, Path]) -> list[dict]:
+    """`args` trained by two processes on localhost, of one device each, process i with --out outs[i]."""
+    layout = ["--coordinator", f"localhost:{free_port()}", "--num-processes", "2"]
+    return finished([command([*args, *layout, "--process-id", str(i), "--out", str(outs[i])]) for i in (0, 1)])
+
+
+def one_process(args: list[str], devices: int = 2) -> dict:
+    return finished([command(args, devices)])[0]
+
+
+def params_of(run_dir: Path) -> list[np.ndarray]:
+    return jax.tree.leaves(serialization.msgpack_restore(RunDir(run_dir).read_params()))
+
+
+def rows_of(run_dir: Path) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "sps"} for row in RunDir(run_dir).read_metrics()]
+
+
+def printed(result: dict) -> list[str]:
+    """What a process printed but gloo's line on connecting (printed by its C++ library)."""
+    lines = (result["stdout"] + result["stderr"]).splitlines()
+    return [line for line in lines if not line.startswith("[Gloo]")]
+
+
+def test_two_processes_train_their_shares_of_the_runs_and_only_process_0_writes(tmp_path):
+    # No checkpoints: process 1 has nothing to write, so its own --out stays unmade.
+    results = two_processes([*TINY, "--num-seeds", "2", "--checkpoint-every", "0"], (tmp_path / "run", tmp_path / "other"))
+    assert [result["code"] for result in results] == [0, 0], results
+    assert not (tmp_path / "other").exists() and printed(results[1]) == []
+    assert "2 run(s)" in results[0]["stdout"]
+    summary = RunDir(tmp_path / "run").read_summary()
+    assert (summary["placement"], summary["devices"], summary["processes"]) == ("runs", 2, 2)
+    # Each device trains one run with the one-run program of a single device (see test_devices).
+    for index, seed in enumerate((1, 2)):
+        out = tmp_path / f"seed-{seed}"
+        assert train.main([*TINY, "--seed", str(seed), "--checkpoint-every", "0", "--out", str(out)]) == 0
+        for a, b in zip(params_of(tmp_path / "run"), params_of(out), strict=True):
+            np.testing.assert_allclose(a[index], b[0], rtol=1e-4, atol=2e-5)
+
+
+def test_a_run_refused_by_process_0_is_refused_by_every_process(tmp_path):
+    # Process 0 alone checks --out; the other process stops too instead of waiting for it.
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("the user's")
+    results = two_processes([*TINY, "--checkpoint-every", "0"], (tmp_path / "run", tmp_path / "run"))
+    assert [result["code"] for result in results] == [2, 2]
+    assert printed(results[0]) == [f"error: --out {tmp_path / 'run'} already exists and is not an empty directory; "
+                                   "choose a new one or --resume it"]  # fmt: skip
+    assert printed(results[1]) == ["error: process 0 refused the run (its error says why)"]
+
+
+@pytest.mark.parametrize(
+    "env, reason",
+    [
+        ("gym/BipedalWalker-v3", "steps host-side simulators, which train in one process, not 2"),
+        ("mjx-dmc/cartpole-balance", "keeps its model on process 0's device, so it trains in one process, not 2"),
+    ],
+    ids=["host", "playground"],
+)  # fmt: skip
+def test_environments_of_one_process_are_refused_with_several(tmp_path, env, reason):
+    results = two_processes(["--env", env, "--quiet"], (tmp_path / "run", tmp_path / "run"))
+    message = f"error: --env {env} {reason}"
+    assert [(result["code"], printed(result)) for result in results] == [(2, [message])] * 2
+    assert not (tmp_path / "run").exists()
+
+
+# Measured on the 2-core CPU: 57 s for runs, 56 s for envs (each: one reference process,
+# two processes with checkpoints, the two resumed twice, and a refused one-process resume).
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "flags", [["--num-seeds", "3"], ["--num-seeds", "2", "--shard-envs"]], ids=["runs", "envs"]
+)  # fmt: skip
+def test_two_processes_train_and_resume_as_one_process_with_two_devices(tmp_path, flags):
+    # Three runs on two devices are padded to four; two runs with their environments split
+    # average their gradients and merge their statistics across the processes.
+    args = [*TINY, *flags, "--checkpoint-every", "64"]
+    reference, run = tmp_path / "one-process", tmp_path / "two-processes"
+    assert one_process([*args, "--out", str(reference)])["code"] == 0
+    results = two_processes(args, (run, run))
+    assert [result["code"] for result in results] == [0, 0], results
+    assert printed(results[1]) == []
+    # Same program, same shares on the same number of devices: the same numbers, bit for bit.
+    for a, b in zip(params_of(run), params_of(reference), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert rows_of(run) == rows_of(reference)
+    assert sorted(path.name for path in run.iterdir()) == sorted(path.name for path in reference.iterdir())
+    assert sorted(path.name for path in RunDir(run).tensorboard.iterdir()) == ["seed_1", "seed_2", "seed_3"][: int(flags[1])]
+    params, rows = RunDir(run).read_params(), rows_of(run)
+    # Resumed as if killed after its last checkpoint (update 3 of 4), then with that checkpoint
+    # damaged: from the one before, which every process restores once process 0 set it aside.
+    for damaged in (False, True):
+        (run / "summary.json").unlink()
+        if damaged:
+            shutil.rmtree(RunDir(run).checkpoints / "3" / "state")
+        results = two_processes(["--resume", str(run), "--quiet"], (run, run))
+        assert [result["code"] for result in results] == [0, 0], results
+        assert RunDir(run).read_params() == params and rows_of(run) == rows
+        assert (RunDir(run).checkpoints / "damaged-3").is_dir() == damaged
+    (run / "summary.json").unlink()
+    refused = one_process(["--resume", str(run), "--quiet"])
+    assert refused["code"] == 2 and len(printed(refused)) == 1
+    assert "trained by 2 process(es) on 2 device(s)" in refused["stderr"]
+
+
+def test_a_run_of_several_processes_resumes_only_on_its_own_layout():
+    two_processes = Placement(None, False, 2, processes=2)  # check_resumable reads only the numbers
+    with pytest.raises(UsageError, match="trained by 2 process"):
+        check_resumable({"placement": "runs", "devices": 2, "processes": 2}, Placement(None, False, 2), "runs/x")
+    with pytest.raises(UsageError, match=r"trained by 1 process\(es\) on 2 device\(s\), and would resume by 2"):
+        check_resumable({"placement": "runs", "devices": 2}, two_processes, "runs/x")
+
+
+LAYOUTS = {
+    "partial": (["--num-processes", "2"], "--coordinator, --process-id missing: give all of --coordinator"),
+    "address": (["--coordinator", "localhost", "--num-processes", "2", "--process-id", "0"], "must be HOST:PORT"),
+    "count": (["--coordinator", "localhost:1", "--num-processes", "0", "--process-id", "0"], "--num-processes must be >= 1"),
+    "index": (
+        ["--coordinator", "localhost:1", "--num-processes", "2", "--process-id", "2"],
+        "--process-id must be >= 0 and below --num-processes 2, got 2",
+    ),
+    "no-cluster": (["--distributed"], "could not join the run's processes (coordinator_address should be defined.)"),
+}
+
+
+@pytest.mark.parametrize("name", LAYOUTS)
+def test_bad_process_layouts_exit_2_with_one_line(tmp_path, name):
+    flags, message = LAYOUTS[name]
+    result = one_process([*TINY, *flags, "--out", str(tmp_path / "run")], devices=1)
+    assert result["code"] == 2 and printed(result) == [printed(result)[0]], result
+    assert message in result["stderr"]
+    assert not (tmp_path / "run").exists()
