@@ -119,9 +119,7 @@ def new_plan(
         if not RunDir(out).is_new():
             raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
         check_writable(out)
-    placement = placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)
-    if eval_every and placement.count > 1:
-        raise UsageError(f"--eval-every works on one device for now, not {placement.count}; give --devices 1")
+    placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)  # a bad layout is refused here
     run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
@@ -316,7 +314,7 @@ class Compiled:
     chunk: int
     compile_seconds: float
     # (state, keys) -> each run's mean deterministic return over eval_episodes; None: evaluation off
-    run_eval: Callable[[ppo.TrainState, jax.Array], jax.Array] | None = None
+    run_eval: Callable[[dict[str, Any], jax.Array], jax.Array] | None = None
     eval_keys: jax.Array | None = None
 
 
@@ -426,8 +424,8 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
             if env.spec.runs_on_host:
                 # The simulators died with the interrupted process and no checkpoint holds them.
                 state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
-        run_eval = compile_evaluation(plan, env, trainer, abstract_state, keys) if plan.eval_every else None
         run_chunk = chunk_program.result()
+    run_eval = compile_evaluation(plan, env, trainer) if plan.eval_every else None
     # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.
     eval_keys = jax.vmap(lambda key: jax.random.fold_in(key, EVAL_STREAM))(keys)
     return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
@@ -436,24 +434,29 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
 EVAL_STREAM = 0x5EED
 
 
-def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer, abstract_state: Any, keys: jax.Array) -> Callable:
-    """The evaluation of every run, compiled: the deterministic policy (normalised as in
-    training, with the statistics of the moment) on `eval_episodes` fresh copies of the
+def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Callable:
+    """The evaluation of every run, jitted for one device: the deterministic policy (normalised as
+    in training, with the statistics of the moment) on `eval_episodes` fresh copies of the
     environment, scored by the environment's own rewards (no scaling or normalisation). For a
-    host-side environment the copies are a pool of their own simulators."""
+    host-side environment the copies are a pool of their own simulators. It takes the real runs'
+    `evaluation_inputs` on the host, wherever the runs train, and compiles at its first call."""
     low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
 
-    def evaluate(state: ppo.TrainState, key: jax.Array) -> jax.Array:
-        stats = trainer.observation_statistics(state)
-
+    def evaluate(inputs: dict[str, Any], key: jax.Array) -> jax.Array:
         def policy(obs: jax.Array, key: jax.Array, deterministic: bool) -> jax.Array:
-            return act(trainer.config, trainer.actor, state.params["actor"], stats, low, high, obs, key, deterministic)
+            return act(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high, obs, key, deterministic)
 
-        key = jax.random.fold_in(key, state.update)
+        key = jax.random.fold_in(key, inputs["update"])
         returns, _ = first_episode_returns(env, policy, plan.eval_episodes, key, deterministic=True)
         return returns.mean()
 
-    return jax.jit(jax.vmap(evaluate)).lower(abstract_state, jax.eval_shape(lambda k: k, keys)).compile()
+    return jax.jit(jax.vmap(evaluate))
+
+
+def evaluation_inputs(trainer: ppo.Trainer, state: ppo.TrainState) -> dict[str, Any]:
+    """What an evaluation reads of a (placed) training state: the actor, the observation
+    statistics and the update count."""
+    return {"actor": state.params["actor"], "obs_stats": trainer.observation_statistics(state), "update": state.update}
 
 
 def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
@@ -505,7 +508,8 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     every, done = plan.eval_updates, first_update + compiled.chunk
     if done // every == first_update // every and done != plan.config.num_updates:
         return None
-    return np.asarray(jax.device_get(compiled.run_eval(state, compiled.eval_keys)))
+    inputs = compiled.placement.real_runs(evaluation_inputs(compiled.trainer, state))
+    return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
 
 
 def train_chunks(

@@ -46,12 +46,15 @@ def rows_of(run_dir: Path) -> list[dict]:
     return [{k: v for k, v in row.items() if k != "sps"} for row in RunDir(run_dir).read_metrics()]
 
 
-# 4 runs (seeds 1-4) on 1, 2 and 4 devices; seeds 1-3 on 2 devices, padded to 4 with a copy of seed 1.
+# 4 runs (seeds 1-4) on 1, 2 and 4 devices; seeds 1-3 on 2 devices, padded to 4 with a copy of
+# seed 1; one run's environments over 2 devices. Every one evaluated after each update.
+EVAL = ["--eval-every", "64", "--eval-episodes", "2"]
 RUN_SPLITS = {
-    "d1": ["--num-seeds", "4", "--devices", "1"],
-    "d2": ["--num-seeds", "4", "--devices", "2"],
-    "d4": ["--num-seeds", "4", "--devices", "4"],
-    "three-d2": ["--num-seeds", "3", "--devices", "2"],
+    "d1": ["--num-seeds", "4", "--devices", "1", *EVAL],
+    "d2": ["--num-seeds", "4", "--devices", "2", *EVAL],
+    "d4": ["--num-seeds", "4", "--devices", "4", *EVAL],
+    "three-d2": ["--num-seeds", "3", "--devices", "2", *EVAL],
+    "envs-d2": ["--devices", "2", "--shard-envs", *EVAL],
 }
 
 
@@ -82,6 +85,14 @@ def test_runs_split_over_devices_train_as_on_one_device(run_splits, split):
     summary = RunDir(run_splits / split).read_summary()
     assert summary["placement"] == "runs" and summary["devices"] == int(split[-1])
     assert summary["padded_runs"] == 4 and len(summary["runs"]) == runs
+
+
+def test_runs_on_several_devices_are_evaluated_during_training(run_splits):
+    # Split runs' evaluation returns are compared with one device's above (they are in the rows).
+    for split in RUN_SPLITS:
+        returns = [row["eval_return"] for row in rows_of(run_splits / split)]
+        assert len(returns) == 4 * (1 if split == "envs-d2" else 3 if split == "three-d2" else 4)
+        assert all(np.isfinite(returns)) and all(value > 0 for value in returns), split
 
 
 def test_split_runs_are_distinct_runs(run_splits):
