@@ -15,8 +15,10 @@ one run's environments split across them (data parallel). Built on `jax.sharding
   the same on every device. The state is stacked [D, R, ...], one slice per device, and its
   checkpoints need the same D to resume.
 
-With one device, or a host-side environment (whose simulators are stepped through callbacks
-on one device), the program is the plain `jax.jit(jax.vmap(...))` of a single device.
+With one device the program is the plain `jax.jit(jax.vmap(...))` of a single device.
+Host-side environments (simulators stepped through callbacks) are placed the same way, in one
+process: every run steps its own pool of simulators, and with `--shard-envs` every device
+steps a pool of num_envs / D simulators per run, built from the key folded with its index.
 
 Several processes (`join_processes`, one per machine or per GPU) train as one: the mesh holds
 every process's devices, each process runs the same program, and the results come back to
@@ -99,11 +101,22 @@ class Placement:
 
     def chunk_program(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
         """The compiled `chunk` updates of every run: placed state -> (state, metrics)."""
-        scan = jax.vmap(lambda s: trainer.scan_diagnosed_updates(s, chunk))
+        program = self._per_device(jax.vmap(lambda s: trainer.scan_diagnosed_updates(s, chunk)))
+        placed = abstract_state if self.kind == "one device" else self._placed_abstract(abstract_state)
+        return program.lower(placed).compile()
+
+    def restart_program(self, trainer: ppo.Trainer) -> Callable[[ppo.TrainState], ppo.TrainState]:
+        """Placed state -> the same with fresh episodes in every run (`Trainer.restart_episodes`),
+        each device restarting its own share, so that host-side simulators get a new pool per
+        device shard, seeded from that shard's key."""
+        return self._per_device(jax.vmap(trainer.restart_episodes))
+
+    def _per_device(self, runs_fn: Callable) -> Callable:
+        """`runs_fn` (on a batch of runs' states) jitted for this placement."""
         if self.kind == "one device":
-            return jax.jit(scan).lower(abstract_state).compile()
-        body = scan if self.kind == "runs" else lambda state: _stacked(scan(_unstacked(state)))
-        return self._spread(body, PartitionSpec(AXIS)).lower(self._placed_abstract(abstract_state)).compile()
+            return jax.jit(runs_fn)
+        body = runs_fn if self.kind == "runs" else lambda state: _stacked(runs_fn(_unstacked(state)))
+        return self._spread(body, PartitionSpec(AXIS))
 
     def _placed_abstract(self, tree: Any) -> Any:
         sharding = self._sharding()
@@ -169,14 +182,8 @@ def make_placement(
         raise UsageError(f"--devices {devices}: only {len(available)} local {available[0].platform} device(s) here")
     if processes > 1 and env_name.startswith(PROCESS_0_SUITES):
         raise UsageError(f"--env {env_name} keeps its model on process 0's device, so it trains in one process, not {processes}")
-    if runs_on_host:
-        if processes > 1:
-            raise UsageError(f"--env {env_name} steps host-side simulators, which train in one process, not {processes}")
-        if shard_envs or (devices or 1) > 1:
-            raise UsageError(
-                f"--env {env_name} steps host-side simulators, which train on one device: give --devices 1 and no --shard-envs"
-            )
-        return Placement(None, False, num_runs)
+    if runs_on_host and processes > 1:
+        raise UsageError(f"--env {env_name} steps host-side simulators, which train in one process, not {processes}")
     count = len(available) if devices is None else devices
     if shard_envs:
         check_env_split(config, count * processes)

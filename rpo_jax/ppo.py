@@ -361,7 +361,7 @@ class Trainer:
         and the normalisers' statistics stay. A resumed run needs this for host-side simulators,
         whose state lives outside JAX and so in no checkpoint."""
         key, reset_key = jax.random.split(state.key)
-        env_state, ts = self.env.restart(state.env_state, reset_key)
+        env_state, ts = self.env.restart(state.env_state, device_key(reset_key, self.axis_name))
         return state.replace(env_state=env_state, obs=ts.obs, key=key)
 
     def observation_statistics(self, state: TrainState) -> envs.RunningMeanStd:

@@ -423,7 +423,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
             state, record = placement.from_checkpoint(restored[0]), restored[1]
             if env.spec.runs_on_host:
                 # The simulators died with the interrupted process and no checkpoint holds them.
-                state = jax.jit(jax.vmap(trainer.restart_episodes))(state)
+                state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
     run_eval = compile_evaluation(plan, env, trainer) if plan.eval_every else None
     # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.

@@ -138,6 +138,28 @@ def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags)
     assert result == {"codes": [0, 0], "same_params": True, "same_rows": True, "rows": 4 * (3 if "3" in flags else 1)}
 
 
+HOST = ["--env", "gym/BipedalWalker-v3", "--num-seeds", "2"]  # Box2D simulators on the host
+
+
+def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
+    commands = (json.dumps([*HOST, "--devices", str(count), f"d{count}"]) for count in (1, 2))
+    results = device_check(tmp_path, "commands", *commands)
+    assert results["d1"]["code"] == 0 and results["d2"]["code"] == 0, results
+    for a, b in zip(params_of(tmp_path / "d2"), params_of(tmp_path / "d1"), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
+    assert RunDir(tmp_path / "d2").read_summary()["devices"] == 2
+
+
+def test_host_side_environments_split_over_devices_train_and_resume(tmp_path):
+    # Each device steps a pool of its own (4 of the 8 simulators of each run); a resumed run
+    # starts new pools on every device (the simulators are in no checkpoint), so it goes on from
+    # the checkpoint's parameters with other episodes, not to the same end.
+    result = device_check(tmp_path, "resume", *HOST, "--devices", "2", "--shard-envs")
+    assert result["codes"] == [0, 0] and result["rows"] == 2 * 4
+    summary = RunDir(tmp_path / "resumed").read_summary()
+    assert (summary["placement"], summary["devices"]) == ("envs", 2)
+
+
 def test_a_data_parallel_run_resumes_only_on_its_own_devices():
     from rpo_jax.devices import Placement, check_resumable
 
