@@ -206,32 +206,27 @@ def measure_phases(num_envs: int, repeats: int) -> dict[str, float]:
 
     from rpo_jax import envs, ppo
 
+    from throughput import best_of  # this folder's, on the path when run as a script
+
     config = rpo_config(num_envs, num_envs * NUM_STEPS)
     trainer = ppo.make_trainer(config, envs.make_env(ENV))
-    state, _ = jax.jit(trainer.update)(jax.jit(trainer.init)(jax.random.PRNGKey(0)))  # past the first update
+    update = jax.jit(trainer.update)
+    state, _ = update(jax.jit(trainer.init)(jax.random.PRNGKey(0)))  # past the first update
     key = jax.random.PRNGKey(1)
     rollout = jax.jit(lambda s: ppo.rollout(trainer, s.params, s.env_state, s.obs, key))
     traj = rollout(state)[2]
     make_batch = jax.jit(lambda s, traj: ppo.make_batch(trainer, s.params, traj, s.value_stats))
     batch = make_batch(state, traj)[0]
     epochs = jax.jit(lambda s, b: ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, b, key))
-    update = jax.jit(trainer.update)
     phases = {
         "whole update": lambda: update(state),
         "rollout": lambda: rollout(state),
         "values and GAE": lambda: make_batch(state, traj),
         "minibatch epochs": lambda: epochs(state, batch),
     }
-    seconds = {}
-    for name, run in phases.items():
+    for run in phases.values():
         jax.block_until_ready(run())  # compile and warm up
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            jax.block_until_ready(run())
-            times.append(time.perf_counter() - start)
-        seconds[name] = min(times)
-    return seconds
+    return {name: best_of(run, repeats) for name, run in phases.items()}
 
 
 def measure_in_subprocess(trainer: str, num_envs: int, timesteps: int) -> dict[str, float]:

@@ -313,7 +313,7 @@ class Compiled:
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
     chunk: int
     compile_seconds: float
-    # (state, keys) -> each run's mean deterministic return over eval_episodes; None: evaluation off
+    # (real runs' evaluation_inputs, keys) -> each run's mean deterministic return; None: evaluation off
     run_eval: Callable[[dict[str, Any], jax.Array], jax.Array] | None = None
     eval_keys: jax.Array | None = None
 
