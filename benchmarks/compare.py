@@ -164,7 +164,7 @@ def stepping_programs(num_envs: int, rollouts: int) -> dict[str, tuple[Callable,
 
     def rpo_rollouts(state):
         def rollout(state, key):
-            state = stack.draw_starts(state, key)
+            state, _ = stack.draw_starts(state, key)
 
             def one(state, key):
                 return stack.step(state, random_actions(key, num_envs, action_size))[0], None

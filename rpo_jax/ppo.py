@@ -221,7 +221,7 @@ class TrainState:
     params: dict  # {"actor": ..., "critic": ...}
     opt_state: Any
     env_state: Any
-    obs: jax.Array  # [N, obs_size] normalised observation to act on
+    obs: jax.Array  # [N, obs_size] normalised observation to act on (placeholders before a deferred start)
     key: jax.Array
     update: jax.Array  # [] updates done
     hparams: Hyperparams
@@ -288,7 +288,8 @@ def wrap_for_training(
     statistics, action clipping and the reward and observation normalisers."""
     num_envs = config.num_envs // env_shards
     if not isinstance(env, envs.BatchedEnv):
-        env = envs.vectorize(env, num_envs)
+        # The first rollout starts the environments, so the training program resets in one place.
+        env = envs.vectorize(env, num_envs, defer_start=True)
     elif env.num_envs != num_envs:
         raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {num_envs}")
     vec = envs.EpisodeStatistics(env)
@@ -409,8 +410,10 @@ def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key:
         return (env_state, ts.obs), transition
 
     starts_key, key = jax.random.split(device_key(key, trainer.axis_name))
-    # Episodes that end in this rollout restart from initial states drawn here, once.
-    env_state = trainer.env.draw_starts(env_state, starts_key)
+    # Episodes that end in this rollout restart from initial states drawn here, once; in the
+    # first rollout every environment starts from them (`VectorEnv`'s deferred start).
+    env_state, start = trainer.env.draw_starts(env_state, starts_key)
+    obs = jnp.where(start.started, start.obs, obs)
     keys = jax.random.split(key, trainer.config.num_steps)
     (env_state, obs), traj = jax.lax.scan(functools.partial(step, params), (env_state, obs), keys)
     return env_state, obs, traj

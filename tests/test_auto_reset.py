@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from scipy import stats
 from test_cartpole import FakeEnv
 
@@ -19,7 +20,7 @@ def run_rollouts(env, num_rollouts, num_steps, action_fn, seed=0):
 
     def rollout(state, key):
         starts_key, key = jax.random.split(key)
-        state = env.draw_starts(state, starts_key)
+        state, _ = env.draw_starts(state, starts_key)
 
         def step(state, key):
             state, ts = env.step(state, action_fn(key))
@@ -103,5 +104,71 @@ def test_more_endings_than_environments_take_the_pool_again_in_turn():
         state, ts = step(state, jnp.zeros((num_envs, 1)))
         np.testing.assert_array_equal(ts.obs, pool)
     assert int(state.next_start) == 3 * num_envs
-    redrawn = env.draw_starts(state, jax.random.PRNGKey(1))
+    redrawn, _ = env.draw_starts(state, jax.random.PRNGKey(1))
     assert int(redrawn.next_start) == 0 and not np.array_equal(redrawn.start_obs, pool)
+
+
+def test_a_deferred_start_starts_every_environment_from_the_first_draw():
+    num_envs = 8
+    env = VectorEnv(FakeEnv(min_len=1, max_len=1), num_envs, defer_start=True)  # every step ends every episode
+    state, ts = env.reset(jax.random.PRNGKey(0))
+    assert not bool(state.started) and not np.asarray(ts.obs).any()  # laid out, not started
+    state, start = jax.jit(env.draw_starts)(state, jax.random.PRNGKey(1))
+    pool = np.asarray(state.start_obs)
+    assert bool(start.started) and bool(state.started)
+    np.testing.assert_array_equal(start.obs, pool)
+    for field in ("count", "length", "key"):
+        np.testing.assert_array_equal(getattr(state.envs.inner, field), getattr(state.starts.inner, field))
+    # The pool's states are the environments' own now: the first episodes to end take them again, in turn.
+    state, ts = jax.jit(env.step)(state, jnp.zeros((num_envs, 1)))
+    np.testing.assert_array_equal(ts.obs, pool)
+    state, start = jax.jit(env.draw_starts)(state, jax.random.PRNGKey(2))
+    assert not bool(start.started) and int(state.next_start) == 0
+
+
+def test_the_trainers_stack_normalises_the_first_observations_at_the_first_draw():
+    from rpo_jax import ppo
+    from rpo_jax.config import Config
+
+    config = Config(num_envs=16, num_steps=4, num_minibatches=2, update_epochs=1, total_timesteps=16 * 4 * 2)
+    stack = ppo.make_trainer(config, FakeEnv()).env
+    assert stack.defers_start
+    state, _ = stack.reset(jax.random.PRNGKey(0))
+    assert float(stack.statistics(state).count) == pytest.approx(1e-4)  # placeholders are not counted
+    state, start = stack.draw_starts(state, jax.random.PRNGKey(1))
+    raw = np.asarray(state.inner.inner.inner.start_obs, np.float64)  # under the three wrappers that hold state
+    stats = stack.statistics(state)
+    np.testing.assert_allclose(stats.count, 16 + 1e-4)
+    np.testing.assert_allclose(stats.mean, raw.mean(0) * 16 / (16 + 1e-4), rtol=1e-5)
+    expected = np.clip((raw - np.asarray(stats.mean)) / np.sqrt(np.asarray(stats.var) + 1e-8), -config.obs_clip, config.obs_clip)
+    np.testing.assert_allclose(start.obs, expected, rtol=1e-4, atol=1e-5)
+    # A second draw starts nothing and leaves the statistics alone.
+    state, start = stack.draw_starts(state, jax.random.PRNGKey(2))
+    assert not bool(start.started) and float(stack.statistics(state).count) == pytest.approx(16 + 1e-4)
+
+
+def calls_named(jaxpr, name):
+    """How many calls of a jitted function called `name` the jaxpr holds, in every sub-jaxpr."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.params.get("name") == name
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    count += calls_named(inner, name)
+    return count
+
+
+def test_the_training_program_holds_one_reset():
+    # Each copy of the reset is compiled on its own; for MJX models it is a large part of the program.
+    from rpo_jax import ppo
+    from rpo_jax.config import Config
+
+    config = Config(num_envs=8, num_steps=4, num_minibatches=2, update_epochs=1, total_timesteps=8 * 4 * 3)
+    jaxpr = jax.make_jaxpr(ppo.make_train(config, FakeEnv()))(jax.random.PRNGKey(0))
+    assert calls_named(jaxpr.jaxpr, "reset") == 1
+    # The test can fail: a VectorEnv that resets when it is built holds two.
+    env = VectorEnv(FakeEnv(), 8)
+    two = jax.make_jaxpr(lambda key: env.draw_starts(env.reset(key)[0], key))(jax.random.PRNGKey(0))
+    assert calls_named(two.jaxpr, "reset") == 2

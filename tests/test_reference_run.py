@@ -2,7 +2,9 @@
 below were recorded before the code moved into its present layout, and a move must keep them.
 A change of what is computed records new ones and says why here: auto-reset from a pool of
 starts drawn once per rollout (`envs.VectorEnv`) gives episodes other starts than the reset
-computed at every step did (earlier digests 53d4f44c... and d0260bc0...).
+computed at every step did (earlier digests 53d4f44c... and d0260bc0...); the trainer's
+environments starting at the first rollout's draw (`VectorEnv(defer_start=True)`) give every
+run other first states (earlier: d8fe17ae... and 7816d842...).
 
 XLA compiles for the host CPU's instruction set, and float results can differ in the last bit
 between, say, AVX-512 and AVX2 machines; the digests were taken on an x86-64 CPU with AVX-512
@@ -23,11 +25,11 @@ REFERENCE = [
     "--total-timesteps", "8192", "--num-seeds", "2", "--sweep", "rpo_alpha=0.1,0.5",
     "--log-every", "1", "--checkpoint-every", "0", "--quiet",
 ]  # fmt: skip
-PARAMS_SHA256 = "d8fe17ae4ab2eaf6e20acc49aca7eb662990163c6ded577335a3dc3cba8fda9c"
+PARAMS_SHA256 = "c2d368452163e428086d25b7991d79819cb6f5d3d736ea946b140eb69af861c6"
 # metrics.jsonl's rows without their wall-clock field (sps), as sorted-key JSON. Rows carry 0 for
 # the sweepable fields that their algorithm does not read (`Config.hyperparameters`): this RPO
 # run's drac_coef is 0.0.
-METRICS_SHA256 = "7816d842548a9c9bba8df7d82fda24a0402d74fb79e2694dac4050b0e02ac054"
+METRICS_SHA256 = "9d60099564d0acef2c77bac099823b90cbbcd7f00ad183081dde716c93c00b30"
 
 
 def has_avx512() -> bool:

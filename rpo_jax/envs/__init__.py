@@ -35,8 +35,8 @@ from typing import Any  # noqa: E402
 _EXPORTS = {
     "check_env": "check", "HostEnv": "host", "SequentialSimulators": "host",
     "BatchedEnv": "protocol", "DrawsStarts": "protocol", "Env": "protocol", "EnvSpec": "protocol",
-    "MissingExtraError": "protocol", "Renderable": "protocol", "TimeStep": "protocol", "Vectorizable": "protocol",
-    "first_step": "protocol",
+    "MissingExtraError": "protocol", "Renderable": "protocol", "Start": "protocol", "TimeStep": "protocol",
+    "Vectorizable": "protocol", "first_step": "protocol",
     "env_names": "registry", "env_spec": "registry", "make_env": "registry", "make_vector_env": "registry",
     "register_env": "registry",
     "ClipAction": "wrappers", "DoneIsTermination": "wrappers", "EpisodeStatistics": "wrappers",
@@ -66,6 +66,7 @@ __all__ = [
     "Renderable",
     "RunningMeanStd",
     "SequentialSimulators",
+    "Start",
     "TimeLimit",
     "TimeStep",
     "VectorEnv",

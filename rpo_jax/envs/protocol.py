@@ -81,13 +81,28 @@ class BatchedEnv(Env, Protocol):
     num_envs: int
 
 
+@struct.dataclass
+class Start:
+    """What `draw_starts` returns besides the state: whether the environments started at this
+    draw (the first one after a deferred reset) and, where they did, their first observations."""
+
+    started: jax.Array  # [] bool
+    obs: jax.Array  # [N, obs_size]
+
+
 @runtime_checkable
 class DrawsStarts(Protocol):
     """A batched environment that restarts its episodes from a pool of initial states drawn
-    ahead (`wrappers.VectorEnv`): `draw_starts(state, key)` draws a new pool, which the
-    trainer asks for once before each rollout. The batch wrappers pass it down."""
+    ahead (`wrappers.VectorEnv`): `draw_starts(state, key) -> (state, Start)` draws a new
+    pool, which the trainer asks for once before each rollout. The batch wrappers pass it down.
 
-    def draw_starts(self, state: Any, key: jax.Array) -> Any: ...
+    With `defers_start`, `reset` only lays out the state, its observations are placeholders,
+    and the environments start at the first draw, from its pool: so a program that resets
+    and trains holds one copy of the environment's reset, the pool's, not two."""
+
+    defers_start: bool
+
+    def draw_starts(self, state: Any, key: jax.Array) -> tuple[Any, Start]: ...
 
 
 @runtime_checkable

@@ -6,7 +6,8 @@ observation normalisation). `vectorize` batches a single JAX environment or a ho
 Every batch wrapper defines `restart(state, key)` besides `reset`: fresh episodes in every
 environment that keep the running statistics in `state`, for a resumed run whose simulators
 were not in its checkpoint; and `draw_starts(state, key)`, which passes the trainer's call
-before each rollout down to a `VectorEnv`'s pool of initial states (`DrawsStarts`).
+before each rollout down to a `VectorEnv`'s pool of initial states (`DrawsStarts`), and
+`defers_start`, whether that `VectorEnv` starts its environments at the first draw.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rpo_jax.envs.protocol import BatchedEnv, DrawsStarts, Env, TimeStep, Vectorizable, first_step
+from rpo_jax.envs.protocol import BatchedEnv, DrawsStarts, Env, Start, TimeStep, Vectorizable, first_step
 
 # --------------------------------------------------------------------------------------------
 # Adapter of environments that report `done`
@@ -73,10 +74,12 @@ class VectorEnvState:
     starts: Any  # [N] fresh initial states, which the episodes that end take in turn
     start_obs: jax.Array  # [N, obs_size] their first observations
     next_start: jax.Array  # [] how many of `starts` have been taken
+    started: jax.Array  # [] whether `envs` holds started episodes (not after a deferred reset)
 
 
 def select(done: jax.Array, new: Any, old: Any) -> Any:
-    """`new` where `done` [N], else `old`, leaf by leaf over pytrees with a leading [N] axis."""
+    """`new` where `done`, else `old`, leaf by leaf: `done` is [N] for pytrees with a leading
+    [N] axis, or [] for any pytrees."""
     return jax.tree.map(lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
@@ -91,27 +94,43 @@ class VectorEnv:
     rollout, not at every step inside the vmap as a select of a reset computed for every
     environment, and every episode still starts from its own draw of the reset distribution.
     Only when more episodes end between two draws than there are environments do later ones
-    take the pool's states a second time, in turn."""
+    take the pool's states a second time, in turn.
 
-    def __init__(self, env: Env, num_envs: int) -> None:
+    With `defer_start` (the trainer's), `reset` computes no reset: the environments start at
+    the first `draw_starts`, from its pool, so that the program holds the reset once (XLA
+    compiles each copy on its own, and for MJX models a reset is a large part of the program).
+    The episodes that end in that first rollout then take the pool's states a second time."""
+
+    def __init__(self, env: Env, num_envs: int, defer_start: bool = False) -> None:
         self.env = TimeLimit(env)
-        self.spec, self.num_envs = env.spec, num_envs
+        self.spec, self.num_envs, self.defers_start = env.spec, num_envs, defer_start
         # Jitted, so that a program which resets in two places (the first state and the pools
         # of starts) traces the environment's reset once.
         self._reset = jax.jit(self.env.reset)
 
     def reset(self, key: jax.Array) -> tuple[VectorEnvState, TimeStep]:
-        # The environments and the first pool in one vmapped reset: one copy of it to compile.
         n = self.num_envs
+        if self.defers_start:
+            # Zeros laid out as the reset's states: the first draw replaces them all.
+            shapes = jax.eval_shape(jax.vmap(self._reset), jax.random.split(key, n))
+            states, ts = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+            return VectorEnvState(states, states, ts.obs, jnp.zeros((), jnp.int32), jnp.zeros((), bool)), ts
+        # The environments and the first pool in one vmapped reset: one copy of it to compile.
         states, ts = jax.vmap(self._reset)(jax.random.split(key, 2 * n))
         first, rest = (lambda x: x[:n]), (lambda x: x[n:])
-        state = VectorEnvState(jax.tree.map(first, states), jax.tree.map(rest, states), ts.obs[n:], jnp.zeros((), jnp.int32))
+        state = VectorEnvState(
+            jax.tree.map(first, states), jax.tree.map(rest, states), ts.obs[n:], jnp.zeros((), jnp.int32),
+            jnp.ones((), bool),
+        )  # fmt: skip
         return state, jax.tree.map(first, ts)
 
-    def draw_starts(self, state: VectorEnvState, key: jax.Array) -> VectorEnvState:
-        """`state` with a new pool of initial states."""
+    def draw_starts(self, state: VectorEnvState, key: jax.Array) -> tuple[VectorEnvState, Start]:
+        """`state` with a new pool of initial states; after a deferred reset, with its
+        environments started from that pool."""
         starts, ts = jax.vmap(self._reset)(jax.random.split(key, self.num_envs))
-        return VectorEnvState(state.envs, starts, ts.obs, jnp.zeros((), jnp.int32))
+        envs = select(state.started, state.envs, starts)
+        taken = jnp.where(state.started, 0, self.num_envs).astype(jnp.int32)
+        return VectorEnvState(envs, starts, ts.obs, taken, jnp.ones((), bool)), Start(~state.started, ts.obs)
 
     def step(self, state: VectorEnvState, action: jax.Array) -> tuple[VectorEnvState, TimeStep]:
         envs, ts = jax.vmap(self.env.step)(state.envs, action)
@@ -154,11 +173,16 @@ class EpisodeStatistics:
         # Nothing outlives an episode here: the running returns and lengths start again.
         return self.reset(key)
 
-    def draw_starts(self, state: EpisodeStatisticsState, key: jax.Array) -> EpisodeStatisticsState:
-        # Host pools and other batched environments reset their episodes themselves.
+    @property
+    def defers_start(self) -> bool:
+        return isinstance(self.env, DrawsStarts) and self.env.defers_start
+
+    def draw_starts(self, state: EpisodeStatisticsState, key: jax.Array) -> tuple[EpisodeStatisticsState, Start]:
         if not isinstance(self.env, DrawsStarts):
-            return state
-        return state.replace(inner=self.env.draw_starts(state.inner, key))
+            # Host pools and other batched environments reset their episodes themselves.
+            return state, Start(jnp.zeros((), bool), jnp.zeros((self.env.num_envs, self.spec.observation_size)))
+        inner, start = self.env.draw_starts(state.inner, key)
+        return state.replace(inner=inner), start
 
     def step(self, state: EpisodeStatisticsState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)
@@ -191,7 +215,11 @@ class ClipAction:
     def restart(self, state: Any, key: jax.Array) -> tuple[Any, TimeStep]:
         return self.env.restart(state, key)
 
-    def draw_starts(self, state: Any, key: jax.Array) -> Any:
+    @property
+    def defers_start(self) -> bool:
+        return self.env.defers_start
+
+    def draw_starts(self, state: Any, key: jax.Array) -> tuple[Any, Start]:
         return self.env.draw_starts(state, key)
 
     def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
@@ -261,15 +289,26 @@ class NormalizeObservation:
     def reset(self, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
         state, ts = self.env.reset(key)
         stats = RunningMeanStd.zeros((self.spec.observation_size,))
-        return self._output(state, stats, ts)
+        # A deferred reset's observations are placeholders: the statistics take the first
+        # observations at the first draw instead.
+        return self._output(state, stats, ts, update=not self.env.defers_start)
 
     def restart(self, state: NormalizeObservationState, key: jax.Array) -> tuple[NormalizeObservationState, TimeStep]:
         # The statistics are the checkpoint's, not updated, so that they go on as if never stopped.
         inner, ts = self.env.restart(state.inner, key)
         return self._output(inner, state.obs_stats, ts, update=False)
 
-    def draw_starts(self, state: NormalizeObservationState, key: jax.Array) -> NormalizeObservationState:
-        return state.replace(inner=self.env.draw_starts(state.inner, key))
+    @property
+    def defers_start(self) -> bool:
+        return self.env.defers_start
+
+    def draw_starts(self, state: NormalizeObservationState, key: jax.Array) -> tuple[NormalizeObservationState, Start]:
+        inner, start = self.env.draw_starts(state.inner, key)
+        if not self.enabled:
+            return state.replace(inner=inner), start
+        # Where the environments started here, their first observations count as a reset's do.
+        stats = select(start.started, state.obs_stats.update(start.obs, self.axis_name), state.obs_stats)
+        return NormalizeObservationState(inner, stats), start.replace(obs=normalize_observation(start.obs, stats, self.clip))
 
     @staticmethod
     def statistics(state: NormalizeObservationState) -> RunningMeanStd:
@@ -318,8 +357,13 @@ class NormalizeReward:
         inner, ts = self.env.restart(state.inner, key)
         return NormalizeRewardState(inner, jnp.zeros(ts.reward.shape), state.return_stats), ts
 
-    def draw_starts(self, state: NormalizeRewardState, key: jax.Array) -> NormalizeRewardState:
-        return state.replace(inner=self.env.draw_starts(state.inner, key))
+    @property
+    def defers_start(self) -> bool:
+        return self.env.defers_start
+
+    def draw_starts(self, state: NormalizeRewardState, key: jax.Array) -> tuple[NormalizeRewardState, Start]:
+        inner, start = self.env.draw_starts(state.inner, key)
+        return state.replace(inner=inner), start
 
     def step(self, state: NormalizeRewardState, action: jax.Array):
         inner, ts = self.env.step(state.inner, action)
@@ -332,7 +376,7 @@ class NormalizeReward:
         return NormalizeRewardState(inner, discounted, stats), ts.replace(reward=reward)
 
 
-def vectorize(env: Env, num_envs: int) -> BatchedEnv:
+def vectorize(env: Env, num_envs: int, defer_start: bool = False) -> BatchedEnv:
     """`num_envs` auto-resetting copies of `env` behind the batched protocol: vmapped for a JAX
-    environment, a pool of host simulators for a host-side one."""
-    return env.vectorize(num_envs) if isinstance(env, Vectorizable) else VectorEnv(env, num_envs)
+    environment (`defer_start` as in `VectorEnv`), a pool of host simulators for a host-side one."""
+    return env.vectorize(num_envs) if isinstance(env, Vectorizable) else VectorEnv(env, num_envs, defer_start)
