@@ -44,10 +44,6 @@ from rpo_jax.errors import UsageError
 AXIS = "devices"
 T = TypeVar("T")
 PLACEMENTS = ("one device", "runs", "envs")
-# Suites whose models MJX puts on its default device, jax.devices()[0], which with several
-# processes is process 0's: the others cannot read them. (Cartpole and BallBalance put theirs
-# on each process's own device.)
-PROCESS_0_SUITES = ("brax/", "mjx-dmc/")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,8 +176,6 @@ def make_placement(
         raise UsageError(f"--devices must be >= 1, got {devices}")
     if devices is not None and devices > len(available):
         raise UsageError(f"--devices {devices}: only {len(available)} local {available[0].platform} device(s) here")
-    if processes > 1 and env_name.startswith(PROCESS_0_SUITES):
-        raise UsageError(f"--env {env_name} keeps its model on process 0's device, so it trains in one process, not {processes}")
     if runs_on_host and processes > 1:
         raise UsageError(f"--env {env_name} steps host-side simulators, which train in one process, not {processes}")
     count = len(available) if devices is None else devices

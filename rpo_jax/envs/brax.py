@@ -42,12 +42,17 @@ class BraxEnv(DoneIsTermination):
     def __init__(self, name: str, backend: str | None = None) -> None:
         from brax import envs as brax_envs
 
+        from rpo_jax.envs.mjx_support import models_on_this_process
+
         kwargs = {"backend": backend} if backend else {}
-        self.env = brax_envs.get_environment(name, **kwargs)
+        # Brax's observation_size resets the environment, which puts MJX data too.
+        with models_on_this_process():
+            self.env = brax_envs.get_environment(name, **kwargs)
+            observation_size = int(self.env.observation_size)
         high = (1.0,) * self.env.action_size
         self.spec = EnvSpec(
             f"brax/{name}",
-            int(self.env.observation_size),
+            observation_size,
             int(self.env.action_size),
             tuple(-h for h in high),
             high,

@@ -1,4 +1,5 @@
-"""MuJoCo and MJX, imported once for the MJX models of this package (Cartpole, BallBalance).
+"""MuJoCo and MJX, imported once for the MJX models of this package (Cartpole, BallBalance), and
+the device that Brax's and Playground's environments put their models on while they are built.
 
 Those modules import from here only when a model is built, so that importing them (and the
 registry) imports no simulator. `rpo_jax.envs` has already chosen MuJoCo's OpenGL backend,
@@ -6,7 +7,9 @@ which MuJoCo fixes when it is first imported.
 """
 
 import contextlib
+import functools
 import io
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -15,7 +18,6 @@ import mujoco
 # mujoco.mjx prints (not logs) a line when its optional warp backend is missing; keep stdout clean.
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx
-
 
 
 def put_model(mj_model: mujoco.MjModel) -> tuple[Any, Any]:
@@ -27,4 +29,22 @@ def put_model(mj_model: mujoco.MjModel) -> tuple[Any, Any]:
     return mjx.put_model(mj_model, device=device), mjx.make_data(mj_model, device=device)
 
 
-__all__ = ["mjx", "mujoco", "put_model"]
+@contextlib.contextmanager
+def models_on_this_process() -> Iterator[None]:
+    """While it lasts, what MJX puts without being given a device (`mjx.put_model`,
+    `mjx.make_data`) goes to this process's first device, as in `put_model`.
+
+    Brax and Playground build their environments' models so, which would put them on
+    jax.devices()[0]. Inside a jitted program, where the environments step, MJX's placement
+    lowers to nothing, so only what is put while an environment is built needs this."""
+    device = jax.local_devices()[0]
+    put, make = mjx.put_model, mjx.make_data
+    # The libraries look the functions up on the module when they call them.
+    mjx.put_model, mjx.make_data = functools.partial(put, device=device), functools.partial(make, device=device)
+    try:
+        yield
+    finally:
+        mjx.put_model, mjx.make_data = put, make
+
+
+__all__ = ["mjx", "models_on_this_process", "mujoco", "put_model"]

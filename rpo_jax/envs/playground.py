@@ -45,8 +45,11 @@ class PlaygroundEnv(DoneIsTermination):
                 from mujoco_playground import dm_control_suite
         except ImportError:
             raise MissingExtraError(f"mjx-dmc/{task}", "mujoco_playground", "playground") from None
+        from rpo_jax.envs.mjx_support import models_on_this_process
+
         self.spec = SPECS[f"mjx-dmc/{task}"]
-        self.env = dm_control_suite.load(PLAYGROUND_NAMES[task], config_overrides={"impl": "jax"})
+        with models_on_this_process():
+            self.env = dm_control_suite.load(PLAYGROUND_NAMES[task], config_overrides={"impl": "jax"})
         self.mj_model, self.control_dt = self.env.mj_model, float(self.env.dt)
 
     @staticmethod
