@@ -201,3 +201,20 @@ def test_data_parallel_run_learns_cartpole_as_one_device_does(tmp_path):
     assert summary["placement"] == "envs" and summary["devices"] == 4
     finals = [run["final_return"] for run in summary["runs"]]
     assert min(finals) >= 400, finals
+
+
+def test_one_run_is_trained_unbatched_and_several_vmapped():
+    from rpo_jax.devices import map_runs
+
+    def fn(x, y):
+        return {"sum": x + y, "total": x.sum()}
+
+    for runs in (1, 3):
+        x, y = np.arange(runs * 4.0).reshape(runs, 4), np.ones((runs, 4))
+        out = map_runs(fn)(x, y)
+        expected = jax.vmap(fn)(x, y)
+        for name in ("sum", "total"):
+            np.testing.assert_array_equal(out[name], expected[name])
+        added = [eqn for eqn in jax.make_jaxpr(map_runs(fn))(x, y).jaxpr.eqns if eqn.primitive.name == "add"]
+        # One run: the sum of one run's arrays, not a batch of one (what a vmap would compute).
+        assert [eqn.outvars[0].aval.shape for eqn in added] == [(4,) if runs == 1 else (runs, 4)]
