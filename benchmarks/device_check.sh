@@ -15,7 +15,8 @@
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
 # Writes OUTDIR/<step>.json and .log, OUTDIR/results.json and OUTDIR/results.md (a Markdown table).
 # --cpu-smoke: the same steps at tiny sizes (scaling over 2 forced host devices), to check on a CPU
-# that the script works before GPU time is spent on it; its figures mean nothing.
+# that the script works before GPU time is spent on it; its figures mean nothing. Its steps run
+# side by side, as many at a time as there are cores: their time is XLA compiling, on one core each.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 smoke=0
@@ -29,6 +30,7 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if [ "$smoke" = 1 ]; then
     envs=64; env_steps=20; updates=2; long_steps=$((64 * 16 * 4)); seeds_steps=$((64 * 16 * 2))
     limits=(120 120 120 120 120 120 120)
+    lanes=$(nproc)
     scaling=(--force-host-devices 2 --devices 2 --num-envs 64 --runs 2 --updates 2 --repeats 1)
     # The smoke's time is XLA's CPU compiler's: without its optimisation passes the same programs
     # compile faster (mjx-dmc/walker-walk's training program: 13 s, not 19, on 2 cores) and run
@@ -38,11 +40,12 @@ else
     envs=4096; env_steps=500; updates=10; long_steps=100000000; seeds_steps=$((4096 * 16 * 50))
     # Seconds per step, 480 in all: cartpole, cartpole-long, seeds, ballbalance, mjx-walker, host-walker, scaling.
     limits=(50 110 80 60 80 40 60)
+    lanes=1  # one step at a time: each has the GPU to itself
     scaling=(--num-envs 4096 --runs 8 --updates 10 --repeats 2)
 fi
 
-# step NAME SECONDS COMMAND...: runs COMMAND under a time limit, logs it and records its wall time and status.
-step() {
+# run_step NAME SECONDS COMMAND...: runs COMMAND under a time limit, logs it and records its wall time and status.
+run_step() {
     local name=$1 seconds=$2
     shift 2
     local start=$SECONDS
@@ -50,6 +53,16 @@ step() {
     local code=$?
     echo "{\"step\": \"$name\", \"exit_code\": $code, \"wall_seconds\": $((SECONDS - start))}" >"$out_dir/$name.status.json"
     echo "$name: exit $code in $((SECONDS - start)) s"
+}
+
+# step NAME SECONDS COMMAND...: run_step, in the background while fewer than $lanes steps run.
+step() {
+    if [ "$lanes" -eq 1 ]; then
+        run_step "$@"
+        return
+    fi
+    while [ "$(jobs -rp | wc -l)" -ge "$lanes" ]; do wait -n; done
+    run_step "$@" &
 }
 
 step cartpole "${limits[0]}" "$python" benchmarks/throughput.py --env cartpole --num-envs "$envs" --env-steps "$env_steps" \
@@ -70,6 +83,7 @@ device_count=$("$python" -c "import jax; print(len(jax.local_devices()))" 2>/dev
 if [ "$smoke" = 1 ] || [ "$device_count" -gt 1 ]; then
     step scaling "${limits[6]}" "$python" benchmarks/scaling.py --env cartpole "${scaling[@]}" --json "$out_dir/scaling.json"
 fi
+wait
 
 "$python" - "$out_dir" "$smoke" <<'EOF'
 import json
