@@ -76,7 +76,7 @@ def main() -> int:
     rows = []
     for placement_name, num_runs in (("runs", args.runs), ("envs", 1)):
         for count in counts:
-            placement = devices.make_placement(count, placement_name == "envs", num_runs, config, args.env, False)
+            placement = devices.make_placement(count, placement_name == "envs", num_runs, config)
             seconds, compile_seconds = timed(placement, config, env, num_runs, args.updates, args.repeats)
             steps = num_runs * args.updates * config.batch_size
             rows.append({

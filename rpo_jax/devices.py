@@ -17,9 +17,11 @@ one run's environments split across them (data parallel). Built on `jax.sharding
 
 With one device the program is the plain `jax.jit(jax.vmap(...))` of a single device (for one
 run, not vmapped: `map_runs`).
-Host-side environments (simulators stepped through callbacks) are placed the same way, in one
-process: every run steps its own pool of simulators, and with `--shard-envs` every device
-steps a pool of num_envs / D simulators per run, built from the key folded with its index.
+Host-side environments (simulators stepped through callbacks) are placed the same way: every
+run steps its own pool of simulators, and with `--shard-envs` every device steps a pool of
+num_envs / D simulators per run, built from the key folded with its index. A device's
+callbacks run in the process that owns it, so with several processes each builds and steps
+the pools of its own devices' shares (a pool's handle means something only there).
 
 Several processes (`join_processes`, one per machine or per GPU) train as one: the mesh holds
 every process's devices, each process runs the same program, and the results come back to
@@ -181,9 +183,7 @@ def pad_runs(tree: Any, runs: int) -> Any:
     return jax.tree.map(pad, tree)
 
 
-def make_placement(
-    devices: int | None, shard_envs: bool, num_runs: int, config: Config, env_name: str, runs_on_host: bool
-) -> Placement:
+def make_placement(devices: int | None, shard_envs: bool, num_runs: int, config: Config) -> Placement:
     """The placement of `num_runs` runs on `devices` local devices of every process (None: all of
     them), checked: bad layouts raise UsageError naming what is allowed."""
     available, processes = jax.local_devices(), jax.process_count()
@@ -191,8 +191,6 @@ def make_placement(
         raise UsageError(f"--devices must be >= 1, got {devices}")
     if devices is not None and devices > len(available):
         raise UsageError(f"--devices {devices}: only {len(available)} local {available[0].platform} device(s) here")
-    if runs_on_host and processes > 1:
-        raise UsageError(f"--env {env_name} steps host-side simulators, which train in one process, not {processes}")
     count = len(available) if devices is None else devices
     if shard_envs:
         check_env_split(config, count * processes)

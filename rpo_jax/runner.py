@@ -33,7 +33,7 @@ from flax import serialization
 from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
 from rpo_jax.config import SWEEPABLE, Config, check_applies
-from rpo_jax.devices import is_primary
+from rpo_jax.devices import is_primary, make_placement
 from rpo_jax.errors import Diverged, Interrupted, UsageError
 from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
@@ -119,7 +119,7 @@ def new_plan(
         if not RunDir(out).is_new():
             raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
         check_writable(out)
-    placement_of(env, config, devices, shard_envs, len(grid) * num_seeds)  # a bad layout is refused here
+    make_placement(devices, shard_envs, len(grid) * num_seeds, config)  # a bad layout is refused here
     run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=out, env=env, preset=preset, seed=seed, num_seeds=num_seeds, sweep=tuple(sweep), config=config,
@@ -194,11 +194,6 @@ def resumed_plan(out: Path) -> RunPlan:
         out=out, config=config, resuming=True,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
-
-
-def placement_of(env: str, config: Config, device_count: int | None, shard_envs: bool, num_runs: int) -> devices.Placement:
-    spec = envs.env_spec(env)
-    return devices.make_placement(device_count, shard_envs, num_runs, config, env, spec.runs_on_host)
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -359,7 +354,7 @@ def train_locked(
     swept = list(grid[0])
     runs = describe_runs(plan, grid)
     run_dir = plan.run_dir
-    placement = placement_of(plan.env, plan.config, plan.devices, plan.shard_envs, len(runs))
+    placement = make_placement(plan.devices, plan.shard_envs, len(runs), plan.config)
     primary = is_primary()
     if plan.resuming:
         devices.check_resumable(run_dir.read_config(), placement, plan.out)

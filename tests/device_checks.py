@@ -110,7 +110,7 @@ def replicas(count: int) -> dict:
     """The largest difference between the devices' slices of a data-parallel state after two
     updates, for the leaves every device must hold alike."""
     config = Config(num_envs=8, num_steps=8, num_minibatches=2, update_epochs=2, total_timesteps=128)
-    placement = devices.make_placement(count, True, 2, config, "cartpole", runs_on_host=False)
+    placement = devices.make_placement(count, True, 2, config)
     trainer = placement.make_trainer(config, envs.make_env("cartpole"))
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     hparams = jax.vmap(lambda _: ppo.Hyperparams.from_config(config))(jnp.arange(2))
