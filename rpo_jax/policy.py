@@ -45,8 +45,8 @@ def first_episode_returns(
 ) -> tuple[jax.Array, jax.Array]:
     """Jittable: the undiscounted return of the first episode of each of `episodes` fresh
     copies of `env` (its own rewards, no scaling or normalisation), and whether it ended within
-    max_episode_steps. Both [episodes]."""
-    vec = envs.EpisodeStatistics(envs.vectorize(env, episodes))
+    max_episode_steps. Both [episodes]. `env` may be batched already, with `episodes` copies."""
+    vec = envs.EpisodeStatistics(env if isinstance(env, envs.BatchedEnv) else envs.vectorize(env, episodes))
     reset_key, act_key = jax.random.split(key)
     state, ts = vec.reset(reset_key)
 

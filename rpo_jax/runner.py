@@ -436,16 +436,27 @@ def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Ca
     host-side environment the copies are a pool of their own simulators. It takes the real runs'
     `evaluation_inputs` on the host, wherever the runs train, and compiles at its first call."""
     low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
+    copies = envs.vectorize(env, plan.eval_episodes)
 
     def evaluate(inputs: dict[str, Any], key: jax.Array) -> jax.Array:
         def policy(obs: jax.Array, key: jax.Array, deterministic: bool) -> jax.Array:
             return act(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high, obs, key, deterministic)
 
         key = jax.random.fold_in(key, inputs["update"])
-        returns, _ = first_episode_returns(env, policy, plan.eval_episodes, key, deterministic=True)
+        returns, _ = first_episode_returns(copies, policy, plan.eval_episodes, key, deterministic=True)
         return returns.mean()
 
-    return jax.jit(jax.vmap(evaluate))
+    program = jax.jit(jax.vmap(evaluate))
+    if not isinstance(copies, envs.BatchedHostEnv):
+        return program
+
+    def evaluate_and_close(inputs: dict[str, Any], keys: jax.Array) -> jax.Array:
+        # Every evaluation builds its own pools of simulators; nothing steps them afterwards.
+        returns = jax.block_until_ready(program(inputs, keys))
+        copies.close()
+        return returns
+
+    return evaluate_and_close
 
 
 def evaluation_inputs(trainer: ppo.Trainer, state: ppo.TrainState) -> dict[str, Any]:

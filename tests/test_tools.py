@@ -123,6 +123,24 @@ def test_eval_return_on_a_host_side_task_and_only_when_asked(point_mass_env, tmp
     assert "eval_return_mean" not in json.loads((plain / "summary.json").read_text())
 
 
+def test_every_evaluation_closes_the_simulators_it_built(isolated_registry, tmp_path):
+    open_pools = {}  # pool -> its size, while open
+
+    def counted(num_envs, seed):
+        pool = host_point_mass().make_simulators(num_envs, seed)
+        open_pools[id(pool)] = num_envs
+        close = pool.close
+        pool.close = lambda: (open_pools.pop(id(pool)), close())
+        return pool
+
+    envs.register_env("counted_point_mass", lambda: envs.HostEnv(HOST_SPEC, counted), HOST_SPEC)
+    argv = ["--env", "counted_point_mass", *TINY, "--total-timesteps", "768", "--num-seeds", "2"]
+    assert train.main([*argv, "--eval-every", "256", "--eval-episodes", "3", "--out", str(tmp_path / "run")]) == 0
+    # Three evaluations of two runs built six pools of 3; none is left open (training's own
+    # two pools of 8 live as long as the process).
+    assert sorted(open_pools.values()) == [8, 8]
+
+
 def test_trained_cartpole_acts_above_450_deterministically(tmp_path, capsys):
     # Measured with the default config: seeds 1, 2 evaluate at 475.5, 474.9 after 98,304 steps
     # (48 updates; 16 episodes each), at 456.5, 432.2 after half of that.

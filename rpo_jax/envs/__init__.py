@@ -33,7 +33,7 @@ from typing import Any  # noqa: E402
 # Imported on first use, so that `python -m rpo_jax.envs --help` and the command lines that
 # import this package for a submodule (`dmc_tasks`) load no JAX.
 _EXPORTS = {
-    "check_env": "check", "HostEnv": "host", "SequentialSimulators": "host",
+    "check_env": "check", "BatchedHostEnv": "host", "HostEnv": "host", "SequentialSimulators": "host",
     "BatchedEnv": "protocol", "DrawsStarts": "protocol", "Env": "protocol", "EnvSpec": "protocol",
     "MissingExtraError": "protocol", "Renderable": "protocol", "Start": "protocol", "TimeStep": "protocol",
     "Vectorizable": "protocol", "first_step": "protocol",
@@ -53,6 +53,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "BatchedEnv",
+    "BatchedHostEnv",
     "ClipAction",
     "DoneIsTermination",
     "DrawsStarts",
