@@ -365,6 +365,15 @@ class Trainer:
         env_state, ts = self.env.restart(state.env_state, device_key(reset_key, self.axis_name))
         return state.replace(env_state=env_state, obs=ts.obs, key=key)
 
+    def close(self) -> None:
+        """Frees the host simulators that training built, if any: no state of this trainer's is
+        stepped after it."""
+        batched = self.env
+        while not isinstance(batched, envs.BatchedEnv):  # the batch wrappers, down to the batch
+            batched = batched.env
+        if isinstance(batched, envs.BatchedHostEnv):
+            batched.close()
+
     def observation_statistics(self, state: TrainState) -> envs.RunningMeanStd:
         """The observation normaliser's statistics, which a saved policy needs."""
         return self.env.statistics(state.env_state)

@@ -373,6 +373,7 @@ def train_locked(
     finally:
         for sink in sinks:
             sink.close()
+        compiled.trainer.close()
     params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
     if primary:
