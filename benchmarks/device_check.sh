@@ -9,7 +9,8 @@
 # | 100M-step RPO cartpole run (isaacgym preset, 4096 envs): wall and compile s | wall < 60 s | python -m rpo_jax.train |
 # | 10 vmapped seeds against one | < 3x | benchmarks/seeds.py |
 # | ballbalance, mjx-dmc/walker-walk training steps/s, 4096 envs | - | benchmarks/throughput.py (train_sps) |
-# | one update of host-side dmc/walker-walk (the GPU's callback path) | runs | python -m rpo_jax.train |
+# | one update of host-side dmc/walker-walk (the GPU's callback path; gymnasium/Pendulum-v1 where | runs | python -m rpo_jax.train |
+# |   envpool is not installed: the same callbacks, a smaller wheel to carry) | | |
 # | training steps/s against devices, both placements (more than one device only) | - | benchmarks/scaling.py |
 #
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
@@ -77,7 +78,9 @@ step ballbalance "${limits[3]}" "$python" benchmarks/throughput.py --env ballbal
 step mjx-walker "${limits[4]}" "$python" benchmarks/throughput.py --env mjx-dmc/walker-walk --num-envs "$envs" \
     --env-steps "$env_steps" --train-updates "$updates" --repeats 1 --json "$out_dir/mjx-walker.json"
 rm -rf "$out_dir/host-walker"
-step host-walker "${limits[5]}" "$python" -m rpo_jax.train --env dmc/walker-walk --num-envs 64 --num-steps 32 \
+host_env=dmc/walker-walk
+"$python" -c "import envpool" 2>/dev/null || host_env=gymnasium/Pendulum-v1
+step host-walker "${limits[5]}" "$python" -m rpo_jax.train --env "$host_env" --num-envs 64 --num-steps 32 \
     --total-timesteps 2048 --checkpoint-every 0 --quiet --out "$out_dir/host-walker"
 device_count=$("$python" -c "import jax; print(len(jax.local_devices()))" 2>/dev/null || echo 1)
 if [ "$smoke" = 1 ] || [ "$device_count" -gt 1 ]; then
@@ -86,7 +89,9 @@ fi
 wait
 
 "$python" - "$out_dir" "$smoke" <<'EOF'
+import importlib.metadata
 import json
+import platform
 import sys
 from pathlib import Path
 
@@ -108,21 +113,28 @@ for name, label in (("ballbalance", "ballbalance"), ("mjx-walker", "mjx-dmc/walk
     if result := read(f"{name}.json"):
         rows.append((f"{label} training steps/s ({result['num_envs']} envs)", f"{result['train_sps']:,.0f}", "", name))
 if summary := read("host-walker/summary.json"):
-    rows.append(("host-side dmc/walker-walk, one update: steps/s", f"{summary['sps']:,.0f}", "runs", "host-walker"))
+    rows.append((f"host-side {summary['env']}, one update: steps/s", f"{summary['sps']:,.0f}", "runs", "host-walker"))
 if scaling := read("scaling.json"):
     for row in scaling["rows"]:
         rows.append((f"scaling: {row['placement']} on {row['devices']} device(s), {row['runs']} run(s)",
                      f"{row['sps']:,.0f}", "", "scaling"))
 device = next((r["device"] for r in (read("cartpole.json"), read("seeds.json")) if r), "unknown")
+versions = {"python": platform.python_version()}
+for name in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "playground", "envpool"):
+    try:
+        versions[name] = importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        pass
 failed = [name for name, s in status.items() if s["exit_code"] != 0]
 lines = [f"# Device check{' (CPU smoke: tiny sizes, figures mean nothing)' if smoke else ''}", "",
          f"Device: {device}. Failed or timed-out steps: {', '.join(failed) or 'none'} (logs in {out}).", "",
+         "Versions: " + ", ".join(f"{name} {version}" for name, version in versions.items()) + ".", "",
          "| figure | value | aim | step |", "|---|---|---|---|"]
 lines += [f"| {figure} | {value} | {aim} | {name} |" for figure, value, aim, name in rows]
 lines += ["", "| step | exit code | wall s |", "|---|---|---|"]
 lines += [f"| {name} | {s['exit_code']} | {s['wall_seconds']} |" for name, s in status.items()]
 (out / "results.md").write_text("\n".join(lines) + "\n")
-(out / "results.json").write_text(json.dumps({"device": device, "smoke": smoke, "status": status,
+(out / "results.json").write_text(json.dumps({"device": device, "smoke": smoke, "versions": versions, "status": status,
                                               "figures": [dict(zip(("figure", "value", "aim", "step"), r)) for r in rows]}, indent=2))
 print("\n".join(lines))
 EOF
