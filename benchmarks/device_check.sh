@@ -18,6 +18,9 @@
 # --cpu-smoke: the same steps at tiny sizes (scaling over 2 forced host devices), to check on a CPU
 # that the script works before GPU time is spent on it; its figures mean nothing. Its steps run
 # side by side, as many at a time as there are cores: their time is XLA compiling, on one core each.
+# On a machine whose Python already holds JAX and which cannot download, install the wheels of
+# benchmarks/requirements-beside-jax.txt first (its header says how); PYTHON names the interpreter
+# (default: .venv's, else python3 on the PATH).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 smoke=0
@@ -25,7 +28,7 @@ if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
 out_dir=${1:-${OUT:-./device-check}}
 mkdir -p "$out_dir"
 python=${PYTHON:-.venv/bin/python}
-[ -x "$python" ] || python=python
+[ -x "$python" ] || python=$(command -v python3 || command -v python)
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 
 if [ "$smoke" = 1 ]; then

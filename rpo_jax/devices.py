@@ -202,6 +202,20 @@ def make_placement(devices: int | None, shard_envs: bool, num_runs: int, config:
     return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes)
 
 
+def split_cpu(count: int | None) -> None:
+    """Makes the host CPU `count` JAX devices (`jax_num_cpu_devices`; None: leaves it one), so that
+    runs split over them train side by side on its cores: XLA runs one CPU device's program on
+    about one core at the sizes of a CPU run. Must come before JAX's first computation."""
+    if count is None:
+        return
+    if count < 1:
+        raise UsageError(f"--cpu-devices must be >= 1, got {count}")
+    try:
+        jax.config.update("jax_num_cpu_devices", count)
+    except RuntimeError:  # JAX has started its backends: the CPU's devices are made
+        raise UsageError("--cpu-devices must come before JAX's first computation in this process") from None
+
+
 def join_processes(coordinator: str | None, num_processes: int | None, process_id: int | None, detect: bool) -> None:
     """Joins this process to the others of a run of several processes (`jax.distributed.initialize`,
     which must come before any other use of JAX): from all three of `coordinator` (process 0's

@@ -141,6 +141,7 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--wandb-entity", help="W&B entity (default: W&B's)")
     parser.add_argument("--wandb-mode", choices=["online", "offline"], help="W&B mode (default: WANDB_MODE, else online)")
     parser.add_argument("--no-compile-cache", action="store_true", help="as for rpo_jax.train")
+    parser.add_argument("--cpu-devices", type=int, metavar="N", help="as for rpo_jax.train: each variant's seeds split over N")
     parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
     parser.add_argument("--quiet", action="store_true", help="no progress display inside each run")
     return parser
@@ -315,6 +316,9 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
+        from rpo_jax import devices
+
+        devices.split_cpu(args.cpu_devices)
         out = run_experiment(args)
     except UsageError as error:
         return usage_failure(error)

@@ -82,6 +82,9 @@ class TrainArgs:
     at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
     shard_envs: bool = False
     """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
+    cpu_devices: int | None = None
+    """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
+    sweep points train faster on a CPU of several cores); None: one device"""
     coordinator: str | None = None
     """HOST:PORT of process 0, to train as one of --num-processes processes (one per machine or GPU) with --process-id"""
     num_processes: int | None = None
@@ -147,8 +150,9 @@ def one_line(message: str) -> str:
 
 # The flags of the tracker: how a process reports, not what the runs are, so --resume takes any.
 TRACKING_FIELDS = ("track", "wandb_project", "wandb_entity", "wandb_mode", "wandb_group")
-# How the processes meet, not what the runs are: --resume takes any, and checks the layout they make.
-PROCESS_FIELDS = ("coordinator", "num_processes", "process_id", "distributed")
+# How the processes meet and what devices they make, not what the runs are: --resume takes any,
+# and checks the layout they make.
+PROCESS_FIELDS = ("coordinator", "num_processes", "process_id", "distributed", "cpu_devices")
 
 
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
@@ -232,6 +236,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parse_args(argv)
         from rpo_jax import devices  # JAX, first used here: the processes join before anything else
 
+        devices.split_cpu(args.cpu_devices)
         devices.join_processes(args.coordinator, args.num_processes, args.process_id, args.distributed)
         plan = devices.refused_together(lambda: make_plan(args, argv))
         summary = train_with_display(plan, args.quiet or not devices.is_primary(), args)
