@@ -9,13 +9,12 @@
 # | 100M-step RPO cartpole run (isaacgym preset, 4096 envs): wall and compile s | wall < 60 s | python -m rpo_jax.train |
 # | 10 vmapped seeds against one | < 3x | benchmarks/seeds.py |
 # | ballbalance, mjx-dmc/walker-walk training steps/s, 4096 envs | - | benchmarks/throughput.py (train_sps) |
-# | one update of host-side dmc/walker-walk (the GPU's callback path; gymnasium/Pendulum-v1 where | runs | python -m rpo_jax.train |
-# |   envpool is not installed: the same callbacks, a smaller wheel to carry) | | |
+# | one update of host-side dmc/walker-walk, the GPU's callback path (without envpool: gymnasium/Pendulum-v1) | runs | python -m rpo_jax.train |
 # | training steps/s against devices, both placements (more than one device only) | - | benchmarks/scaling.py |
 #
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
 # Writes OUTDIR/<step>.json and .log, OUTDIR/results.json and OUTDIR/results.md (a Markdown table).
-# --cpu-smoke: the same steps at tiny sizes (scaling over 2 forced host devices), to check on a CPU
+# --cpu-smoke: the same steps at tiny sizes (scaling over the CPU made 2 devices), to check on a CPU
 # that the script works before GPU time is spent on it; its figures mean nothing. Its steps run
 # side by side, as many at a time as there are cores: their time is XLA compiling, on one core each.
 # On a machine whose Python already holds JAX and which cannot download, install the wheels of
@@ -27,15 +26,18 @@ smoke=0
 if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
 out_dir=${1:-${OUT:-./device-check}}
 mkdir -p "$out_dir"
-python=${PYTHON:-.venv/bin/python}
-[ -x "$python" ] || python=$(command -v python3 || command -v python)
+if [ -n "${PYTHON:-}" ]; then
+    python=$(command -v "$PYTHON") || { echo "error: PYTHON=$PYTHON is not a Python interpreter here" >&2; exit 2; }
+else
+    python=$(command -v .venv/bin/python || command -v python3 || command -v python)
+fi
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 
 if [ "$smoke" = 1 ]; then
     envs=64; env_steps=20; updates=2; long_steps=$((64 * 16 * 4)); seeds_steps=$((64 * 16 * 2))
     limits=(120 120 120 120 120 120 120)
     lanes=$(nproc)
-    scaling=(--force-host-devices 2 --devices 2 --num-envs 64 --runs 2 --updates 2 --repeats 1)
+    scaling=(--cpu-devices 2 --devices 2 --num-envs 64 --runs 2 --updates 2 --repeats 1)
     # The smoke's time is XLA's CPU compiler's: without its optimisation passes the same programs
     # compile faster (mjx-dmc/walker-walk's training program: 13 s, not 19, on 2 cores) and run
     # slower, which at these sizes costs nothing.
@@ -82,7 +84,9 @@ step mjx-walker "${limits[4]}" "$python" benchmarks/throughput.py --env mjx-dmc/
     --env-steps "$env_steps" --train-updates "$updates" --repeats 1 --json "$out_dir/mjx-walker.json"
 rm -rf "$out_dir/host-walker"
 host_env=dmc/walker-walk
+# envpool's wheels with their assets are over 100 MB: a Gymnasium simulator takes the same callbacks.
 "$python" -c "import envpool" 2>/dev/null || host_env=gymnasium/Pendulum-v1
+echo "$host_env" >"$out_dir/host-walker.env"
 step host-walker "${limits[5]}" "$python" -m rpo_jax.train --env "$host_env" --num-envs 64 --num-steps 32 \
     --total-timesteps 2048 --checkpoint-every 0 --quiet --out "$out_dir/host-walker"
 device_count=$("$python" -c "import jax; print(len(jax.local_devices()))" 2>/dev/null || echo 1)
@@ -115,8 +119,9 @@ if seeds := read("seeds.json"):
 for name, label in (("ballbalance", "ballbalance"), ("mjx-walker", "mjx-dmc/walker-walk")):
     if result := read(f"{name}.json"):
         rows.append((f"{label} training steps/s ({result['num_envs']} envs)", f"{result['train_sps']:,.0f}", "", name))
+host_env = (out / "host-walker.env").read_text().strip()
 if summary := read("host-walker/summary.json"):
-    rows.append((f"host-side {summary['env']}, one update: steps/s", f"{summary['sps']:,.0f}", "runs", "host-walker"))
+    rows.append((f"host-side {host_env}, one update: steps/s", f"{summary['sps']:,.0f}", "runs", "host-walker"))
 if scaling := read("scaling.json"):
     for row in scaling["rows"]:
         rows.append((f"scaling: {row['placement']} on {row['devices']} device(s), {row['runs']} run(s)",
@@ -131,13 +136,13 @@ for name in ("jax", "jaxlib", "mujoco", "mujoco-mjx", "brax", "playground", "env
 failed = [name for name, s in status.items() if s["exit_code"] != 0]
 lines = [f"# Device check{' (CPU smoke: tiny sizes, figures mean nothing)' if smoke else ''}", "",
          f"Device: {device}. Failed or timed-out steps: {', '.join(failed) or 'none'} (logs in {out}).", "",
-         "Versions: " + ", ".join(f"{name} {version}" for name, version in versions.items()) + ".", "",
+         "Versions: " + ", ".join(f"{name} {version}" for name, version in versions.items()) + f". Host step on {host_env}.", "",
          "| figure | value | aim | step |", "|---|---|---|---|"]
 lines += [f"| {figure} | {value} | {aim} | {name} |" for figure, value, aim, name in rows]
 lines += ["", "| step | exit code | wall s |", "|---|---|---|"]
 lines += [f"| {name} | {s['exit_code']} | {s['wall_seconds']} |" for name, s in status.items()]
 (out / "results.md").write_text("\n".join(lines) + "\n")
-(out / "results.json").write_text(json.dumps({"device": device, "smoke": smoke, "versions": versions, "status": status,
+(out / "results.json").write_text(json.dumps({"device": device, "smoke": smoke, "versions": versions, "host_env": host_env, "status": status,
                                               "figures": [dict(zip(("figure", "value", "aim", "step"), r)) for r in rows]}, indent=2))
 print("\n".join(lines))
 EOF

@@ -1,15 +1,16 @@
 """Training steps/s against the number of devices, for both placements of rpo_jax.devices.
 
     python benchmarks/scaling.py --env cartpole --num-envs 4096 --runs 8 --json OUT.json
-    python benchmarks/scaling.py --force-host-devices 4 --num-envs 256 --runs 4   # CPU correctness run
+    python benchmarks/scaling.py --cpu-devices 4 --num-envs 256 --runs 4   # on a CPU
 
 For each device count D in --devices (default 1, 2, 4, ... up to all local devices):
 - runs: --runs runs (seeds) of --num-envs environments each, split over D devices;
 - envs: one run of --num-envs environments, split over D devices (data parallel).
 Each program does --updates updates of the `isaacgym` preset (rpo, alpha 0.5), compiled ahead
 of time and timed best of --repeats; steps/s counts every run's environment steps.
---force-host-devices N splits the host CPU into N devices (XLA's flag, set before JAX starts):
-they share the same cores, so on a CPU the figures check that every layout runs, not a speed-up.
+--cpu-devices N makes the CPU N devices, as `rpo_jax.train --cpu-devices` does. They share its
+cores: split runs train faster than on one (each device's program keeps about one core busy),
+data parallel slower (its all-reduces cost more than a CPU run's steps).
 """
 
 from __future__ import annotations
@@ -17,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -31,7 +31,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--updates", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--devices", type=int, nargs="+", help="device counts; default 1, 2, 4, ... up to all")
-    parser.add_argument("--force-host-devices", type=int, help="split the host CPU into this many devices")
+    parser.add_argument("--cpu-devices", type=int, help="make the CPU this many devices (as rpo_jax.train)")
     parser.add_argument("--json", type=Path)
     return parser.parse_args()
 
@@ -60,13 +60,12 @@ def timed(placement, config, env, num_runs: int, updates: int, repeats: int) -> 
 
 def main() -> int:
     args = parse_args()
-    if args.force_host_devices:
-        flag = f"--xla_force_host_platform_device_count={args.force_host_devices}"
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}"
     import jax
 
     from rpo_jax import devices, envs
     from rpo_jax.config import PRESETS
+
+    devices.split_cpu(args.cpu_devices)
 
     available = len(jax.local_devices())
     counts = args.devices or [2**i for i in range(available.bit_length()) if 2**i <= available]
@@ -86,7 +85,7 @@ def main() -> int:
             print(json.dumps(rows[-1]), flush=True)
     result = {
         "env": args.env, "preset": "isaacgym", "updates": args.updates, "device": jax.devices()[0].device_kind,
-        "platform": jax.devices()[0].platform, "forced_host_devices": args.force_host_devices, "rows": rows,
+        "platform": jax.devices()[0].platform, "cpu_devices": args.cpu_devices, "rows": rows,
     }  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

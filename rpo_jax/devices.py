@@ -203,9 +203,10 @@ def make_placement(devices: int | None, shard_envs: bool, num_runs: int, config:
 
 
 def split_cpu(count: int | None) -> None:
-    """Makes the host CPU `count` JAX devices (`jax_num_cpu_devices`; None: leaves it one), so that
-    runs split over them train side by side on its cores: XLA runs one CPU device's program on
-    about one core at the sizes of a CPU run. Must come before JAX's first computation."""
+    """Makes the host CPU `count` JAX devices (`jax_num_cpu_devices`; None: JAX's default, one
+    unless XLA_FLAGS says otherwise), so that runs split over them train side by side on its
+    cores: XLA runs one CPU device's program on about one core at the sizes of a CPU run. Must
+    come before JAX's first computation; `check_cpu_split` after it."""
     if count is None:
         return
     if count < 1:
@@ -216,11 +217,21 @@ def split_cpu(count: int | None) -> None:
         raise UsageError("--cpu-devices must come before JAX's first computation in this process") from None
 
 
+def check_cpu_split(count: int | None) -> None:
+    """Refuses `--cpu-devices` where JAX trains on another platform, which would leave it unused."""
+    if count is None:
+        return
+    platform = jax.default_backend()
+    if platform != "cpu":
+        raise UsageError(f"--cpu-devices splits the CPU, but JAX trains on {platform} here; --devices chooses among those")
+
+
 def join_processes(coordinator: str | None, num_processes: int | None, process_id: int | None, detect: bool) -> None:
     """Joins this process to the others of a run of several processes (`jax.distributed.initialize`,
     which must come before any other use of JAX): from all three of `coordinator` (process 0's
     HOST:PORT), `num_processes` and `process_id`, or with `detect`, from the cluster job that JAX
-    recognises (SLURM, Open MPI, ...) for those not given. None of them: one process alone."""
+    recognises (SLURM, Open MPI, ...) for those not given. None of them: one process alone.
+    Processes holding unequal numbers of local devices are refused: JAX's collectives need as many."""
     given = {"--coordinator": coordinator, "--num-processes": num_processes, "--process-id": process_id}
     missing = [flag for flag, value in given.items() if value is None]
     if not detect and len(missing) == len(given):
@@ -246,6 +257,12 @@ def join_processes(coordinator: str | None, num_processes: int | None, process_i
         hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
         hint = hint if detect else ""
         raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
+    local_counts = sorted({len(_devices_of(process)) for process in range(jax.process_count())})
+    if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
+        raise UsageError(
+            f"the processes hold {' or '.join(map(str, local_counts))} local devices; JAX's collectives need as many "
+            "on each (the same --cpu-devices, or as many GPUs visible to each)"
+        )
 
 
 def refused_together(make: Callable[[], T]) -> T:
@@ -288,6 +305,7 @@ def check_resumable(saved_record: dict[str, Any], placement: Placement, out: Any
         raise UsageError(
             f"--resume {out}: the run was trained as {saved_kind} on {saved_count} device(s), and would resume as "
             f"{placement.kind} on {placement.count}; a run with --shard-envs resumes on the same number of devices"
+            + (" (--cpu-devices N makes the CPU N devices)" if jax.default_backend() == "cpu" else "")
         )
 
 

@@ -141,7 +141,9 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("--wandb-entity", help="W&B entity (default: W&B's)")
     parser.add_argument("--wandb-mode", choices=["online", "offline"], help="W&B mode (default: WANDB_MODE, else online)")
     parser.add_argument("--no-compile-cache", action="store_true", help="as for rpo_jax.train")
-    parser.add_argument("--cpu-devices", type=int, metavar="N", help="as for rpo_jax.train: each variant's seeds split over N")
+    parser.add_argument(
+        "--cpu-devices", type=int, metavar="N", help="as for rpo_jax.train: each job's runs (seeds x sweep points) split over N",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
     parser.add_argument("--quiet", action="store_true", help="no progress display inside each run")
     return parser
@@ -319,6 +321,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from rpo_jax import devices
 
         devices.split_cpu(args.cpu_devices)
+        devices.check_cpu_split(args.cpu_devices)
         out = run_experiment(args)
     except UsageError as error:
         return usage_failure(error)

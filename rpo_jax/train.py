@@ -84,7 +84,7 @@ class TrainArgs:
     """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
     cpu_devices: int | None = None
     """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
-    sweep points train faster on a CPU of several cores); None: one device"""
+    sweep points train faster on a CPU of several cores); None: JAX's default (one)"""
     coordinator: str | None = None
     """HOST:PORT of process 0, to train as one of --num-processes processes (one per machine or GPU) with --process-id"""
     num_processes: int | None = None
@@ -234,10 +234,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = parse_args(argv)
-        from rpo_jax import devices  # JAX, first used here: the processes join before anything else
+        from rpo_jax import devices  # JAX, first used here: the CPU split and the processes joined first
 
         devices.split_cpu(args.cpu_devices)
         devices.join_processes(args.coordinator, args.num_processes, args.process_id, args.distributed)
+        devices.check_cpu_split(args.cpu_devices)
         plan = devices.refused_together(lambda: make_plan(args, argv))
         summary = train_with_display(plan, args.quiet or not devices.is_primary(), args)
     except UsageError as error:

@@ -223,28 +223,46 @@ def test_one_run_is_trained_unbatched_and_several_vmapped():
         assert [eqn.outvars[0].aval.shape for eqn in added] == [(4,) if runs == 1 else (runs, 4)]
 
 
-def test_cpu_devices_split_the_cpu_for_split_runs(tmp_path):
-    # A process of its own: the CPU is split as JAX starts. Resuming takes the flag too.
-    from device_checks import TINY_COMMAND
-
-    command = [sys.executable, "-m", "rpo_jax.train", *TINY_COMMAND, "--num-seeds", "3", "--cpu-devices", "2"]
+def cpu_devices_command(*args: str) -> None:
+    """`python -m rpo_jax.train ARGS` in a process of its own, whose CPU --cpu-devices splits as JAX starts."""
     environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
     environment |= {"PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
-    out = tmp_path / "split"
-    result = subprocess.run([*command, "--out", str(out)], env=environment, capture_output=True, text=True, timeout=600)
+    command = [sys.executable, "-m", "rpo_jax.train", *args]
+    result = subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
+
+
+def test_cpu_devices_split_the_cpu_for_split_runs(tmp_path):
+    from device_checks import TINY_COMMAND
+
+    cpu_devices_command(*TINY_COMMAND, "--num-seeds", "3", "--cpu-devices", "2", "--out", str(tmp_path / "split"))
+    summary = RunDir(tmp_path / "split").read_summary()
+    assert (summary["placement"], summary["devices"], summary["padded_runs"], len(summary["runs"])) == ("runs", 2, 4, 3)
+
+
+@pytest.mark.slow
+def test_split_runs_resume_on_another_cpu_split(tmp_path):
+    # 25 s on the 2-core CPU: two runs of 3 seeds, each compiled for its own split.
+    from device_checks import TINY_COMMAND
+
+    out = tmp_path / "split"
+    cpu_devices_command(*TINY_COMMAND, "--num-seeds", "3", "--cpu-devices", "2", "--checkpoint-every", "64", "--out", str(out))
+    (out / "summary.json").unlink()  # as if killed after its last checkpoint
+    cpu_devices_command("--resume", str(out), "--cpu-devices", "3", "--quiet")
     summary = RunDir(out).read_summary()
-    assert (summary["placement"], summary["devices"], summary["padded_runs"]) == ("runs", 2, 4)
-    assert len(summary["runs"]) == 3
+    assert (summary["placement"], summary["devices"], summary["padded_runs"], len(summary["runs"])) == ("runs", 3, 3, 3)
 
 
 def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):
+    from device_checks import TINY_COMMAND
+
     from rpo_jax import experiment, train
 
     jax.numpy.zeros(()).block_until_ready()  # JAX's backends started in this process
+    tiny_experiment = ["ppo-vs-rpo", "--envs", "cartpole", "--seeds", "1", "--timesteps", "64", "--num-envs", "8"]
     for value, message in (("0", "--cpu-devices must be >= 1, got 0"), ("2", "must come before JAX's first computation")):
-        assert train.main(["--cpu-devices", value, "--quiet", "--out", str(tmp_path / "run")]) == 2
-        assert experiment.main(["ppo-vs-rpo", "--cpu-devices", value, "--out", str(tmp_path / "experiment")]) == 2
+        assert train.main([*TINY_COMMAND, "--cpu-devices", value, "--out", str(tmp_path / "run")]) == 2
+        assert experiment.main([*tiny_experiment, "--cpu-devices", value, "--out", str(tmp_path / "experiment")]) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 2 and all(message in line for line in lines), lines
     assert not any(tmp_path.iterdir())  # refused before anything was written
@@ -253,5 +271,5 @@ def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):
 def test_resume_takes_cpu_devices_as_it_takes_the_process_flags():
     from rpo_jax.train import TrainArgs, check_resume
 
-    saved = {"devices": None}  # what the run recorded: --cpu-devices is not among it
+    saved = {"devices": None}  # what a run records of where it trained: --cpu-devices is not part of the run
     check_resume(TrainArgs(resume=Path("runs/x"), cpu_devices=4), {"cpu_devices", "resume"}, saved)
