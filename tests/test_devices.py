@@ -273,3 +273,13 @@ def test_resume_takes_cpu_devices_as_it_takes_the_process_flags():
 
     saved = {"devices": None}  # what a run records of where it trained: --cpu-devices is not part of the run
     check_resume(TrainArgs(resume=Path("runs/x"), cpu_devices=4), {"cpu_devices", "resume"}, saved)
+
+
+def test_cpu_devices_refused_where_jax_trains_on_a_gpu(monkeypatch):
+    from rpo_jax import devices
+
+    devices.check_cpu_split(None)  # not given: nothing to check
+    devices.check_cpu_split(2)  # this CPU-only process
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    with pytest.raises(UsageError, match="--cpu-devices splits the CPU, but JAX trains on gpu here"):
+        devices.check_cpu_split(2)
