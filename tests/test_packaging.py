@@ -16,9 +16,9 @@ HELD = {"jax", "jaxlib", "numpy", "rich", "matplotlib", "scipy"}
 def declared_requirements() -> tuple[set[str], dict[str, Requirement]]:
     """The names of pyproject.toml's own dependencies, and every requirement (its extras' too) by name."""
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    extras = [line for extra in project["optional-dependencies"].values() for line in extra]
-    requirements = {canonicalize_name(r.name): r for r in map(Requirement, [*project["dependencies"], *extras])}
-    return {canonicalize_name(Requirement(line).name) for line in project["dependencies"]}, requirements
+    own = [Requirement(line) for line in project["dependencies"]]
+    extras = [Requirement(line) for extra in project["optional-dependencies"].values() for line in extra]
+    return {canonicalize_name(r.name) for r in own}, {canonicalize_name(r.name): r for r in [*own, *extras]}
 
 
 def listed_pins() -> dict[str, str]:
