@@ -1,25 +1,42 @@
-# Set-up on a fresh machine: `make train` or `make test` creates .venv and installs rpo_jax.
-PYTHON ?= $(shell command -v python3.11 || command -v python3)
-VENV := .venv
+# Set-up on a fresh machine: `make train` installs the core and trains the default Cartpole;
+# `make test` installs the `dev` set (every suite, lint, tests) and runs lint and the tests.
+# Another Python: `make test PYTHON=python3.13 VENV=.venv-3.13` (each venv is its own).
+PYTHON ?= $(shell for p in python3.11 python3.12 python3.13 python3; do $$p -c '' 2>/dev/null && command -v $$p && break; done)
+VENV ?= .venv
+# The suite's files spread over this many processes (pytest-xdist), a file's tests in one of them.
+TEST_WORKERS ?= 2
 PY := $(VENV)/bin/python
 
-.PHONY: train test lint benchmark
+.PHONY: train test lint benchmark wheel-check
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $@
 
-train: $(VENV)/.installed
+$(VENV)/.core: $(VENV)/.created pyproject.toml
+	$(PY) -m pip install --quiet -e .
+	touch $@
+
+$(VENV)/.dev: $(VENV)/.created pyproject.toml
+	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip check
+	touch $@ $(VENV)/.core
+
+train: $(VENV)/.core
 	$(PY) -m rpo_jax.train
 
-lint: $(VENV)/.installed
+lint: $(VENV)/.dev
 	$(VENV)/bin/ruff check rpo_jax tests benchmarks
 	$(VENV)/bin/lint-imports
 
 test: lint
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
-benchmark: $(VENV)/.installed
+# The built wheel, installed (not editable) into a fresh venv outside the source tree with the
+# core's dependencies alone, lists its environments and trains the default Cartpole.
+wheel-check:
+	bash .ci/wheel-check $(PYTHON)
+
+benchmark: $(VENV)/.dev
 	$(PY) benchmarks/throughput.py --env cartpole --num-envs 1024

@@ -3,6 +3,8 @@
 import importlib
 from typing import Any
 
+__version__ = "0.2.0"  # the one declaration: pyproject.toml reads it
+
 # Imported on first use, so that `import rpo_jax` (and every command's --help) loads no JAX.
 _EXPORTS = {
     "Config": "rpo_jax.config", "PRESETS": "rpo_jax.config", "ALGORITHMS": "rpo_jax.config",

@@ -41,6 +41,11 @@ SUITES: dict[str, tuple[str, ...]] = {
     "pybullet": ("pybullet/Ant", "pybullet/Minitaur"),
     "isaacgym": ("cartpole", "ballbalance"),
 }
+# Tasks of the published reference run (CleanRL's RPO benchmark, 8M steps, 10 seeds) to compare
+# with at its budget; benchmarks/reference/cleanrl_rpo_8m.csv holds the reference's figures.
+SUITES["reference"] = (
+    "gym/Pendulum-v1", "dmc/pendulum-swingup", "dmc/cartpole-swingup_sparse", "dmc/walker-walk", "dmc/hopper-stand",
+)  # fmt: skip
 # The paper's 18 tasks, each once (DMC on the host, as dm_control would step it).
 SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") for name in SUITES[suite])
 # The IsaacGym tasks were trained with rl_games' settings for each task in the paper, everything
@@ -119,6 +124,7 @@ def build_parser() -> ArgumentParser:
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--suite", choices=sorted(SUITES), help="environment suite (default: the experiment's)")
     where.add_argument("--envs", nargs="+", metavar="ENV", help="environment names instead of a suite")
+    parser.add_argument("--jobs", nargs="+", metavar="JOB", help="only these of the experiment's jobs (default: all)")
     parser.add_argument("--seeds", type=int, default=10, help="seeds per variant (default 10, as the paper)")
     parser.add_argument(
         "--timesteps", type=int,
@@ -149,6 +155,17 @@ def build_parser() -> ArgumentParser:
     return parser
 
 
+def selected_jobs(args: argparse.Namespace) -> tuple[Job, ...]:
+    """The experiment's jobs that --jobs names, in the experiment's order; all without it."""
+    jobs = EXPERIMENTS[args.name].jobs
+    if not args.jobs:
+        return jobs
+    unknown = sorted(set(args.jobs) - {job.name for job in jobs})
+    if unknown:
+        raise UsageError(f"--jobs {', '.join(unknown)}: {args.name} has jobs {', '.join(job.name for job in jobs)}")
+    return tuple(job for job in jobs if job.name in args.jobs)
+
+
 def resolve(args: argparse.Namespace) -> dict:
     """The experiment's full definition, as recorded in experiment.json."""
     experiment = EXPERIMENTS[args.name]
@@ -172,7 +189,7 @@ def resolve(args: argparse.Namespace) -> dict:
         "preset": args.preset,
         "checkpoint_every": args.checkpoint_every,
         **({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes} if args.eval_every else {}),
-        "jobs": [dataclasses.asdict(job) for job in experiment.jobs],
+        "jobs": [dataclasses.asdict(job) for job in selected_jobs(args)],
     }
     if args.num_steps is not None:  # recorded only when given, so that older experiments continue
         definition["num_steps"] = args.num_steps
@@ -241,7 +258,7 @@ def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
 def run_experiment(args: argparse.Namespace) -> Path:
     definition = resolve(args)
     out = args.out or Path("experiments") / args.name
-    jobs = EXPERIMENTS[args.name].jobs  # experiment.json holds the same, prepare_out checks it
+    jobs = selected_jobs(args)  # experiment.json holds the same, prepare_out checks it
     check_jobs(definition, jobs)
     prepare_out(out, definition, write=False)  # refused before the lock creates the directory
     with hold_lock(out):

@@ -58,6 +58,8 @@ RUN_SPLITS = {
 }
 
 
+# Five programs compiled in one subprocess (96 s): slow. Runs split over devices stay in the default
+# suite through test_host_side_runs_split_over_devices_train_as_on_one_device and --cpu-devices.
 @pytest.fixture(scope="module")
 def run_splits(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("devices")
@@ -68,6 +70,7 @@ def run_splits(tmp_path_factory):
 
 
 @pytest.mark.parametrize("split", ["d2", "d4", "three-d2"])
+@pytest.mark.slow
 def test_runs_split_over_devices_train_as_on_one_device(run_splits, split):
     # Not bit-exact: each device's program vmaps fewer runs than the one-device program, and
     # XLA's CPU code rounds a batch of 1 or 2 differently from one of 4 (as it does a vmapped
@@ -90,6 +93,7 @@ def test_runs_split_over_devices_train_as_on_one_device(run_splits, split):
     assert summary["padded_runs"] == 4 and len(summary["runs"]) == runs
 
 
+@pytest.mark.slow
 def test_runs_on_several_devices_are_evaluated_during_training(run_splits):
     # Split runs' evaluation returns are compared with one device's above (they are in the rows).
     for split in RUN_SPLITS:
@@ -98,6 +102,7 @@ def test_runs_on_several_devices_are_evaluated_during_training(run_splits):
         assert all(np.isfinite(returns)) and all(value > 0 for value in returns), split
 
 
+@pytest.mark.slow
 def test_split_runs_are_distinct_runs(run_splits):
     # The padding copies the first run; the real runs stay distinct (the comparison is not vacuous).
     kernel = max(params_of(run_splits / "three-d2"), key=np.size)

@@ -93,6 +93,7 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
     assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
 
 
+@pytest.mark.slow  # 50 s; a run resuming exactly stays in test_reliability and test_user_envs
 def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path):
     out = tmp_path / "ppo-vs-rpo"
     cmd = [*EXPERIMENT_CMD, "--out", str(out)]
@@ -179,6 +180,7 @@ def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
         assert len(err.splitlines()) == 1 and message in err, (argv, err)
 
 
+@pytest.mark.slow  # 18 s of learning; evaluate stays in test_user_envs and test_reliability
 def test_evaluation_of_a_trained_policy_beats_a_random_one(uninterrupted, capsys):
     run_dir = job_dir(uninterrupted, "rpo")
     env = envs.make_env("cartpole")

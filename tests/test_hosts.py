@@ -86,6 +86,7 @@ def printed(result: dict) -> list[str]:
     return [line for line in lines if not line.startswith("[Gloo]")]
 
 
+@pytest.mark.slow  # 43 s; two processes stay in the host-side case below
 def test_two_processes_train_their_shares_of_the_runs_and_only_process_0_writes(tmp_path):
     # No checkpoints: process 1 has nothing to write, so its own --out stays unmade.
     results = two_processes([*TINY, "--num-seeds", "2", "--checkpoint-every", "0"], (tmp_path / "run", tmp_path / "other"))

@@ -177,6 +177,7 @@ def run_cli(*args):
 TINY_FLAGS = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "2", "--quiet"]
 
 
+@pytest.mark.slow  # 22 s; sweeps stay in the tests below
 def test_the_papers_entropy_coefficients_all_train_in_one_sweep(tmp_path):
     coefficients = [0.0, 0.01, 0.05, 0.5, 1.0, 10.0]
     out = tmp_path / "run"

@@ -37,3 +37,31 @@ def test_wheels_beside_jax_are_pinned_within_pyproject_ranges():
         if name in declared:
             assert declared[name].specifier.contains(version), f"{name}=={version} is outside pyproject's {declared[name]}"
     assert not pins.keys() & HELD  # JAX and the rest are the machine's own
+
+
+def test_the_version_is_declared_once_and_installed_as_declared():
+    import importlib.metadata
+
+    import rpo_jax
+
+    assert "version" in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dynamic"]
+    assert importlib.metadata.version("rpo_jax") == rpo_jax.__version__
+
+
+def test_the_rpo_jax_command_runs_each_command_and_refuses_unknown_ones(capsys):
+    from rpo_jax.__main__ import COMMANDS, main
+
+    assert main(["--version"]) == 0 and capsys.readouterr().out.startswith("rpo_jax ")
+    assert main([]) == 0
+    usage = capsys.readouterr().out
+    assert all(name in usage for name in COMMANDS)
+    assert main(["envs"]) == 0 and "cartpole" in capsys.readouterr().out
+    assert main(["train", "--num-envs", "0"]) == 2 and "num_envs" in capsys.readouterr().err
+    assert main(["fly"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown command 'fly'" in err
+
+
+def test_the_console_script_is_declared():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts == {"rpo-jax": "rpo_jax.__main__:main"}

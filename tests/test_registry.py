@@ -10,7 +10,7 @@ import pytest
 from rpo_jax import envs
 from rpo_jax.envs.__main__ import EXTRAS, extras_lines
 
-SIMULATORS = ("mujoco", "brax", "envpool", "gymnax", "gymnasium", "gym", "pybullet", "pybullet_envs", "mujoco_playground")
+SIMULATORS = ("mujoco", "brax", "envpool", "gymnasium", "gym", "pybullet", "pybullet_envs", "mujoco_playground")
 
 
 def built_spec(name: str) -> envs.EnvSpec:

@@ -140,6 +140,7 @@ def test_training_and_every_evaluation_close_the_simulators_they_built(isolated_
     assert open_pools == {}
 
 
+@pytest.mark.slow  # 29 s of learning; test_training's RPO run stays
 def test_trained_cartpole_acts_above_450_deterministically(tmp_path, capsys):
     # Measured with the default config: seeds 1, 2 evaluate at 475.5, 474.9 after 98,304 steps
     # (48 updates; 16 episodes each), at 456.5, 432.2 after half of that.

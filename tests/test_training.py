@@ -125,7 +125,8 @@ def test_episode_return_is_carried_forward_while_no_episode_finishes():
 LEARNING_BUDGET = 300_000
 
 
-@pytest.mark.parametrize("algo", ["ppo", "rpo"])
+# PPO's run is slow (19 s); RPO's, the method this project is about, stays in the default suite.
+@pytest.mark.parametrize("algo", [pytest.param("ppo", marks=pytest.mark.slow), "rpo"])
 def test_learns_cartpole(algo):
     config = Config(algo=algo, total_timesteps=LEARNING_BUDGET)
     _, metrics = train_seeds_vmapped(config, keys_for((0, 1)))

@@ -26,7 +26,7 @@ NOTE = (
 
 # The optional extras (pyproject.toml), the names they provide and the modules they install.
 EXTRAS = {
-    "gym": ("gym/", ("gymnax", "gymnasium", "Box2D")),
+    "gym": ("gym/BipedalWalker-v3, gymnasium/", ("gymnasium", "Box2D")),
     "dmc": ("dmc/", ("envpool",)),
     "pybullet": ("pybullet/", ("pybullet", "pybullet_envs")),
     "playground": ("mjx-dmc/", ("mujoco_playground",)),
