@@ -561,6 +561,22 @@ def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_experiment_refuses_envs_that_would_share_a_directory(tmp_path, capsys, monkeypatch):
+    for module, factory in (("cola", "b_c"), ("cola_b", "c")):  # cola:b_c and cola_b:c, both cola_b_c
+        (tmp_path / f"{module}.py").write_text(f"from point_mass import PointMass\n{factory} = PointMass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "experiment"
+    # Refused before the runs are checked (--timesteps 10 is below a batch): without the check, in seconds.
+    args = ["ppo-vs-rpo", "--out", str(out), "--timesteps", "10", "--quiet", "--envs", "test/point_mass", "cola:b_c", "cola_b:c"]
+    assert experiment.main(args) == 2
+    line = one_line(capsys)
+    assert line == "error: --envs cola:b_c and cola_b:c would share the directory runs/cola_b_c; run them apart", line
+    assert not out.exists()
+    # The names of existing experiments' directories are kept, so that they continue.
+    job = experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]
+    assert experiment.run_dir(out, "test/point_mass", job) == out / "runs" / "test_point_mass" / job.name
+
+
 def test_library_errors_are_usage_errors():
     with pytest.raises(UsageError, match="finite"):
         Config(lr=float("inf")).validate()
