@@ -426,6 +426,33 @@ def test_resume_of_a_foreign_or_broken_config_is_refused(unfinished, capsys, con
     assert message in line and line.startswith(f"error: --resume {unfinished}"), line
 
 
+@pytest.mark.parametrize(
+    "flags, code, message",
+    [
+        (["--no-compile-cache"], 0, None),
+        (["--no-quiet"], 0, None),
+        (["--no-shard-envs"], 0, None),
+        (["--compile-cache", "--quiet"], 0, None),
+        (["--shard-envs"], 2, "the run was made with --shard-envs False, not True"),
+        (["--no-norm-adv"], 2, "the run was made with --norm-adv True, not False"),
+        (["--no-such-flag"], 2, "Unrecognized options: --no-such-flag"),
+    ],
+)
+def test_resume_takes_the_negated_flags_and_refuses_other_ones_in_one_line(unfinished, capsys, flags, code, message):
+    assert train.main(["--resume", str(unfinished), *flags]) == code
+    if message:
+        line = one_line(capsys)
+        assert line.startswith("error: ") and message in line, line
+    assert (unfinished / SUMMARY_FILE).exists() == (code == 0)
+
+
+def test_no_field_is_named_like_a_negated_flag():
+    from rpo_jax.train import TrainArgs
+
+    names = [field.name for cls in (TrainArgs, Config) for field in dataclasses.fields(cls)]
+    assert not [name for name in names if name.startswith("no_")]
+
+
 # --------------------------------------------------------------------------------------------
 # Failures of the machine: out of memory, a full disk, Ctrl-C
 
