@@ -6,29 +6,33 @@ the update counters and the hyperparameters of every run. Next to it, a small JS
 says how far the run's log files had got, so a resumed run can cut them back to that point.
 
 orbax writes each checkpoint into a temporary directory and renames it when complete, so a
-process killed mid-write leaves the previous checkpoint as the latest one. A checkpoint damaged
-after it was written (a truncated or deleted file: orbax's storage checksums its data) raises
-`CheckpointDamaged`, and `restore_latest` falls back to the previous one.
+process killed mid-write leaves the previous checkpoint as the latest one. The record carries a
+SHA-256 checksum of every saved array and of the record itself, so a checkpoint damaged after it
+was written (a truncated, deleted, overwritten or edited file) raises `CheckpointDamaged` on
+restore, and `restore_latest` falls back to the previous one. Checkpoints written before the
+checksums existed restore unverified.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import logging
 import math
 import shutil
 import sys
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
-# Damaged on disk: the file read fails (ValueError from tensorstore's checksums and decoders,
-# KeyError for a missing item, OSError for a missing file).
-READ_FAILURES = (ValueError, KeyError, OSError)
+# The record's key holding the checksums; `restore` returns the record without it.
+CHECKSUMS = "checksums"
 
 
 class CheckpointMismatch(ValueError):
@@ -46,6 +50,49 @@ def _layout(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
         jax.tree_util.keystr(path, simple=True, separator="."): (tuple(leaf.shape), str(leaf.dtype))
         for path, leaf in leaves
     }
+
+
+def on_host(leaf: Any) -> np.ndarray:
+    """A leaf's whole value on the host, in every process: an array sharded over several
+    processes is gathered (a collective, which every process calls in the same order)."""
+    if isinstance(leaf, jax.Array) and not (leaf.is_fully_addressable or leaf.is_fully_replicated):
+        return np.asarray(multihost_utils.process_allgather(leaf, tiled=True))
+    return np.asarray(leaf)
+
+
+def _state_checksums(tree: Any) -> dict[str, str]:
+    """Leaf name -> SHA-256 of its bytes, for the arrays orbax writes (zero-size ones are None)."""
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {
+        jax.tree_util.keystr(path, simple=True, separator="."): hashlib.sha256(
+            np.ascontiguousarray(on_host(leaf)).tobytes()
+        ).hexdigest()
+        for path, leaf in leaves
+    }
+
+
+def _record_checksum(record: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+
+
+def _checked_record(restored: Any, record: Any) -> tuple[dict[str, Any], str | None]:
+    """The record without its checksums, and why the checkpoint differs from what was saved
+    (None: it does not, or it was saved without checksums and cannot be checked)."""
+    if not isinstance(record, dict):
+        return {}, f"its record is {record!r}"
+    record = dict(record)
+    checksums = record.pop(CHECKSUMS, None)
+    if checksums is None:  # saved before checksums existed: restored unverified
+        return record, None
+    if not isinstance(checksums, dict) or checksums.get("record") != _record_checksum(record):
+        return record, "its record differs from the one saved"
+    saved, found = checksums.get("state"), _state_checksums(restored)
+    if not isinstance(saved, dict) or saved.keys() != found.keys():
+        return record, "its record's checksums do not name the saved arrays"
+    differing = sorted(name for name in found if found[name] != saved[name])
+    if differing:
+        return record, f"{len(differing)} array(s) differ from those saved, first {differing[0]}"
+    return record, None
 
 
 def _is_empty(leaf: Any) -> bool:
@@ -87,10 +134,14 @@ class Checkpointer:
         return sorted(self.manager.all_steps(), reverse=True)
 
     def save(self, update: int, state: Any, record: dict[str, Any]) -> None:
+        """Saves `state` and `record` (JSON) as the checkpoint of `update`, the record with
+        the checksums of both, which `restore` checks."""
+        state = _without_empty(state)
+        checksums = {"state": _state_checksums(state), "record": _record_checksum(record)}
         self.manager.save(
             update,
             args=ocp.args.Composite(
-                state=ocp.args.StandardSave(_without_empty(state)), record=ocp.args.JsonSave(record)
+                state=ocp.args.StandardSave(state), record=ocp.args.JsonSave({**record, CHECKSUMS: checksums})
             ),
         )
         self.manager.wait_until_finished()
@@ -98,18 +149,20 @@ class Checkpointer:
     def restore(self, abstract_state: Any, update: int | None = None) -> tuple[Any, dict[str, Any]]:
         """The checkpoint at `update` (default the latest) as (state, record). Refuses, before
         reading any array, a checkpoint whose leaves differ in name, shape or dtype from
-        `abstract_state` (CheckpointMismatch); one that cannot be read raises CheckpointDamaged."""
+        `abstract_state` (CheckpointMismatch); one that cannot be read, or whose arrays or record
+        differ from their checksums, raises CheckpointDamaged."""
         update = self.manager.latest_step() if update is None else update
+        damaged = f"checkpoint at update {update} is damaged"
         try:
             # orbax logs a warning of its own for a state without metadata; the error below says it.
             with _quiet_absl():
                 saved = self.manager.item_metadata(update)["state"]
-        except READ_FAILURES as error:
-            raise CheckpointDamaged(f"checkpoint at update {update} is damaged ({_first_line(error)})") from None
+        except Exception as error:  # any failed read is damage; KeyboardInterrupt is no Exception
+            raise CheckpointDamaged(f"{damaged} ({_first_line(error)})") from None
         saved_layout = {leaf.name: (tuple(leaf.shape), str(leaf.dtype)) for leaf in jax.tree.leaves(saved)}
         wanted = _layout(_without_empty(abstract_state))
         if wanted and not saved_layout:  # orbax reads a state without its _METADATA as one without arrays
-            raise CheckpointDamaged(f"checkpoint at update {update} is damaged (its state has no array metadata)")
+            raise CheckpointDamaged(f"{damaged} (its state has no array metadata)")
         if saved_layout != wanted:
             differences = sorted(
                 f"{name}: saved {saved_layout.get(name, 'nothing')}, config needs {wanted.get(name, 'nothing')}"
@@ -127,22 +180,30 @@ class Checkpointer:
                     state=ocp.args.StandardRestore(_without_empty(abstract_state)), record=ocp.args.JsonRestore()
                 ),
             )
-        except READ_FAILURES as error:
+        except Exception as error:  # orbax and tensorstore raise plain Exceptions for truncated or missing data
             _ignore_callbacks_into_closed_loops()
-            raise CheckpointDamaged(f"checkpoint at update {update} is damaged ({_first_line(error)})") from None
-        if not isinstance(restored.record, dict):
-            raise CheckpointDamaged(f"checkpoint at update {update} is damaged (its record is {restored.record!r})")
-        return _with_empty(restored.state, abstract_state), restored.record
+            raise CheckpointDamaged(f"{damaged} ({_first_line(error)})") from None
+        record, problem = _checked_record(restored.state, restored.record)
+        if problem:
+            raise CheckpointDamaged(f"{damaged} ({problem})")
+        return _with_empty(restored.state, abstract_state), record
 
-    def restore_latest(self, abstract_state: Any, skipped: list[str]) -> tuple[Any, dict[str, Any]] | None:
-        """The latest checkpoint that restores, or None where there is none. The damaged ones
-        passed over are described in `skipped` and, once an older one restored, moved aside to
-        `damaged-<update>` so that the run can checkpoint those updates again. Where every one
-        is damaged, CheckpointDamaged, and all stay where they are."""
+    def restore_latest(
+        self, abstract_state: Any, skipped: list[str], check: Callable[[Any, dict[str, Any]], str | None] | None = None
+    ) -> tuple[Any, dict[str, Any]] | None:
+        """The latest checkpoint that restores, or None where there is none. `check(state,
+        record)` says why a restored checkpoint disagrees with the files it describes (None: it
+        agrees); such a one counts as damaged. The damaged ones passed over are described in
+        `skipped` and, once an older one restored, moved aside to `damaged-<update>` so that the
+        run can checkpoint those updates again. Where every one is damaged, CheckpointDamaged,
+        and all stay where they are."""
         damaged = []
         for update in self.updates():
             try:
                 restored = self.restore(abstract_state, update)
+                problem = check(*restored) if check else None
+                if problem:
+                    raise CheckpointDamaged(f"checkpoint at update {update} is damaged ({problem})")
             except CheckpointDamaged as error:
                 skipped.append(str(error))
                 damaged.append(update)

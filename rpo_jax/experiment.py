@@ -175,6 +175,7 @@ def resolve(args: argparse.Namespace) -> dict:
     repeated = sorted({name for name in env_names if env_names.count(name) > 1})
     if repeated:
         raise UsageError(f"--envs names {', '.join(repeated)} more than once; give each environment once")
+    check_directory_names(env_names)
     if args.seeds < 1:
         raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
     for flag in ("timesteps", "num_envs", "num_steps"):
@@ -196,8 +197,25 @@ def resolve(args: argparse.Namespace) -> dict:
     return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
 
 
+def env_directory(env: str) -> str:
+    """The directory name of `env`'s runs: its name, with / and an import path's : as _."""
+    return env.replace("/", "_").replace(":", "_")
+
+
+def check_directory_names(env_names: Sequence[str]) -> None:
+    """Refuses two environments whose runs would share a directory (cola:b_c and cola_b:c are
+    both cola_b_c): the second would find the first's runs and report them as its own."""
+    seen: dict[str, str] = {}
+    for name in env_names:
+        other = seen.setdefault(env_directory(name), name)
+        if other != name:
+            raise UsageError(
+                f"--envs {other} and {name} would share the directory runs/{env_directory(name)}; run them apart"
+            )
+
+
 def run_dir(out: Path, env: str, job: Job) -> Path:
-    return out / "runs" / env.replace("/", "_").replace(":", "_") / job.name
+    return out / "runs" / env_directory(env) / job.name
 
 
 def prepare_out(out: Path, definition: dict, write: bool = True) -> None:

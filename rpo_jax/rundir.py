@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -106,27 +107,66 @@ class RunDir:
     def read_metrics(self) -> list[dict[str, Any]]:
         return [json.loads(line) for line in (self.path / METRICS_FILE).read_text().splitlines()]
 
-    def cut_metrics(self, size: int, cut: bool = True) -> list[dict[str, Any]]:
-        """Cuts metrics.jsonl back to its first `size` bytes (what a checkpoint recorded) and
-        returns the rows kept; with `cut` False (a process that does not write the run) only
-        reads them. A file shorter than that (or missing) lost rows the checkpoint counts on:
-        refused, never padded."""
+    def metrics_checksum(self, size: int) -> str:
+        """SHA-256 of metrics.jsonl's first `size` bytes, for a checkpoint's record."""
+        with open(self.path / METRICS_FILE, "rb") as metrics:
+            return hashlib.sha256(metrics.read(size)).hexdigest()
+
+    def metrics_problem(self, size: Any, checksum: str | None, update: int) -> str | None:
+        """Why metrics.jsonl's first `size` bytes are not what the checkpoint of `update`
+        recorded (None: they are): they must end with a whole row, match `checksum` where the
+        checkpoint has one (older ones have none), and hold the rows up to `update` and none
+        after it. A file shorter than that (or missing) lost rows: UsageError, as `cut_metrics`."""
+        if not isinstance(size, int) or size < 0:
+            return f"its record's {METRICS_FILE} size is {size!r}"
+        data = self._metrics_at_least(size)
+        kept, cut = data[:size], data[size:].splitlines()
+        if size and not kept.endswith(b"\n"):
+            return f"{METRICS_FILE}'s first {size} bytes end inside a row"
+        if checksum is not None and hashlib.sha256(kept).hexdigest() != checksum:
+            return f"{METRICS_FILE}'s first {size} bytes differ from those checkpointed"
+        last_kept = _row_update(kept.splitlines()[-1]) if kept else None
+        first_cut = _row_update(cut[0]) if cut else None
+        if (last_kept is not None and last_kept > update) or (first_cut is not None and first_cut <= update):
+            return f"{METRICS_FILE}'s first {size} bytes are not its rows up to update {update}"
+        return None
+
+    def _metrics_at_least(self, size: int) -> bytes:
+        """metrics.jsonl's bytes, refused where it has fewer than `size`: never padded."""
         path = self.path / METRICS_FILE
-        have = path.stat().st_size if path.is_file() else None
-        if size and (have is None or have < size):
-            found = "is missing" if have is None else f"has {have} bytes"
+        data = path.read_bytes() if path.is_file() else None
+        if size and (data is None or len(data) < size):
+            found = "is missing" if data is None else f"has {len(data)} bytes"
             raise UsageError(
                 f"{path} {found} but the checkpoint counts on its first {size}; its rows were lost, "
                 "so this run cannot be resumed exactly: start it again in a new --out"
             )
+        return data or b""
+
+    def cut_metrics(self, size: int, cut: bool = True) -> list[dict[str, Any]]:
+        """Cuts metrics.jsonl back to its first `size` bytes (what a checkpoint recorded and
+        `metrics_problem` verified) and returns the rows kept; with `cut` False (a process that
+        does not write the run) only reads them. A file shorter than that (or missing) lost
+        rows the checkpoint counts on: refused, never padded."""
+        kept = self._metrics_at_least(size)[:size]
         if cut:
-            with open(path, "a+b") as metrics:
+            with open(self.path / METRICS_FILE, "a+b") as metrics:
                 metrics.truncate(size)
-        return [json.loads(line) for line in path.read_bytes()[:size].splitlines()] if size else []
+        return [json.loads(line) for line in kept.splitlines()]
 
     def append_metrics(self) -> IO[bytes]:
         # Unbuffered, so that a failed write (a full disk) can be cut back to whole rows.
         return open(self.path / METRICS_FILE, "ab", buffering=0)
+
+
+def _row_update(line: bytes) -> int | None:
+    """The update a line of metrics.jsonl logs; None for a line that is not a whole row (the
+    last line of a writer killed mid-write)."""
+    try:
+        update = json.loads(line)["update"]
+    except (ValueError, TypeError, KeyError):
+        return None
+    return update if isinstance(update, int) else None
 
 
 def write_rows(metrics: IO[bytes], rows: list[dict[str, Any]]) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import itertools
 import math
 import os
@@ -31,7 +32,7 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import devices, envs, ppo
-from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer
+from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.devices import is_primary, make_placement
 from rpo_jax.errors import Diverged, Interrupted, UsageError
@@ -472,7 +473,7 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
     checkpointer = Checkpointer(plan.run_dir.checkpoints)
     skipped: list[str] = []
     try:
-        restored = checkpointer.restore_latest(abstract_state, skipped)
+        restored = checkpointer.restore_latest(abstract_state, skipped, functools.partial(record_problem, plan))
     except (CheckpointMismatch, CheckpointDamaged) as error:
         raise UsageError(f"--resume {plan.out}: {error}") from None
     finally:
@@ -480,6 +481,16 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
     for line in skipped:
         print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
     return restored
+
+
+def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any]) -> str | None:
+    """Why a restored checkpoint's record disagrees with its state or with metrics.jsonl (None:
+    it agrees), before metrics.jsonl is cut to the size it records."""
+    update = record.get("update")
+    counted = {int(count) for count in on_host(state.update).ravel()}
+    if not isinstance(update, int) or counted != {update}:
+        return f"its record says update {update!r}, its state {', '.join(map(str, sorted(counted)))}"
+    return plan.run_dir.metrics_problem(record.get("metrics_bytes"), record.get("metrics_sha256"), update)
 
 
 def logged_rows(
@@ -555,9 +566,11 @@ def train_chunks(
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 train_seconds = time.perf_counter() - train_start
                 metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+                metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
                 checkpointer.save(
                     updates_done, compiled.placement.checkpoint_state(state),
-                    {"update": updates_done, "metrics_bytes": metrics_bytes, "train_seconds": train_seconds},
+                    {"update": updates_done, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
+                     "train_seconds": train_seconds},
                 )  # fmt: skip
                 last_checkpoint = updates_done
             if progress:

@@ -121,9 +121,10 @@ def given_value(argv: Sequence[str], flag: str) -> str | None:
 
 
 def given_fields(argv: Sequence[str]) -> set[str]:
-    """The names of the fields whose flags appear in argv (`--no-x` names x)."""
+    """The names of the fields whose flags appear in argv: `--no-x` names x alone (tyro's
+    negation of the boolean x; no field's name starts with no_)."""
     names = {token[2:].partition("=")[0].replace("-", "_") for token in argv if token.startswith("--")}
-    return names | {name.removeprefix("no_") for name in names if name.startswith("no_")}
+    return {name.removeprefix("no_") for name in names}
 
 
 def one_line(message: str) -> str:

@@ -230,9 +230,34 @@ def test_a_second_writer_is_refused_naming_the_holder(tmp_path, capsys, unfinish
 # Checkpoints and metrics.jsonl on resume
 
 
+def data_files(checkpoint: Path) -> list[Path]:
+    return [path for path in (checkpoint / "state").rglob("*") if path.is_file() and path.parent.name == "d"]
+
+
+def flip_64_bytes(checkpoint: Path) -> None:
+    """Inverts 64 bytes in the middle of the checkpoint's largest data file, where orbax's
+    storage holds array bytes that it reads back without complaint."""
+    path = max(data_files(checkpoint), key=lambda path: path.stat().st_size)
+    raw = bytearray(path.read_bytes())
+    middle = len(raw) // 2
+    raw[middle : middle + 64] = bytes(byte ^ 0xFF for byte in raw[middle : middle + 64])
+    path.write_bytes(bytes(raw))
+
+
+def edit_record(checkpoint: Path, checksums: bool = True, **changes) -> None:
+    """Edits the checkpoint's JSON record in place; without `checksums`, as a checkpoint written
+    before records had them."""
+    path = checkpoint / "record" / "metadata"
+    record = {**json.loads(path.read_text()), **changes}
+    if not checksums:
+        del record["checksums"]
+        record.pop("metrics_sha256", None)
+    path.write_text(json.dumps(record))
+
+
 def damage(checkpoint: Path, how: str) -> None:
     state = checkpoint / "state"
-    data = [path for path in state.rglob("*") if path.is_file() and path.parent.name == "d"]
+    data = data_files(checkpoint)
     if how == "truncated":
         for path in data:
             path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
@@ -243,26 +268,42 @@ def damage(checkpoint: Path, how: str) -> None:
             raw = bytearray(path.read_bytes())
             raw[len(raw) // 2] ^= 0xFF
             path.write_bytes(bytes(raw))
+    elif how == "64 bytes flipped":
+        flip_64_bytes(checkpoint)
+    elif how == "data deleted":
+        for path in data:
+            path.unlink()
+    elif how == "record edited":
+        edit_record(checkpoint, update=int(checkpoint.name) + 1)
     elif how == "deleted":
         shutil.rmtree(state)
     elif how == "metadata":
         (state / "_METADATA").unlink()
 
 
-DAMAGES = ["truncated", "manifest", "flipped", "deleted", "metadata"]
+DAMAGES = ["truncated", "manifest", "flipped", "64 bytes flipped", "data deleted", "record edited", "deleted", "metadata"]
 
 
 def abstract(tree):
     return jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype), tree)
 
 
-@pytest.mark.parametrize("how", DAMAGES)
-def test_a_damaged_checkpoint_is_reported_and_the_previous_one_restored(tmp_path, how):
-    states = {update: {"w": jnp.full((10, 100), float(update)), "step": jnp.asarray(update, jnp.int32)} for update in (1, 2)}
-    checkpointer = Checkpointer(tmp_path)
+def saved_states(directory: Path) -> dict[int, dict]:
+    """Checkpoints at updates 1 and 2 of random (incompressible) arrays, as a trained state's."""
+    states = {
+        update: {"w": jax.random.normal(jax.random.PRNGKey(update), (10, 100)), "step": jnp.asarray(update, jnp.int32)}
+        for update in (1, 2)
+    }
+    checkpointer = Checkpointer(directory)
     for update, state in states.items():
         checkpointer.save(update, state, {"update": update})
     checkpointer.close()
+    return states
+
+
+@pytest.mark.parametrize("how", DAMAGES)
+def test_a_damaged_checkpoint_is_reported_and_the_previous_one_restored(tmp_path, how):
+    states = saved_states(tmp_path)
     damage(tmp_path / "2", how)
     checkpointer = Checkpointer(tmp_path)
     with pytest.raises(CheckpointDamaged, match="checkpoint at update 2 is damaged"):
@@ -277,6 +318,13 @@ def test_a_damaged_checkpoint_is_reported_and_the_previous_one_restored(tmp_path
     checkpointer.close()
 
 
+def test_a_checkpoint_saved_without_checksums_restores_unverified(tmp_path):
+    states = saved_states(tmp_path)
+    edit_record(tmp_path / "2", checksums=False)
+    restored, record = Checkpointer(tmp_path).restore(abstract(states[2]))
+    assert record == {"update": 2} and np.array_equal(restored["w"], states[2]["w"])
+
+
 def test_resume_falls_back_to_the_previous_checkpoint_and_ends_as_uninterrupted(finished, unfinished, capsys):
     damage(unfinished / "checkpoints" / str(UPDATES - 1), "truncated")
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
@@ -284,6 +332,51 @@ def test_resume_falls_back_to_the_previous_checkpoint_and_ends_as_uninterrupted(
     assert warning.startswith(f"warning: --resume {unfinished}: checkpoint at update {UPDATES - 1} is damaged"), warning
     assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
     assert (unfinished / METRICS_FILE).read_text().count("\n") == (finished / METRICS_FILE).read_text().count("\n")
+
+
+def without_timing(out: Path) -> list[dict]:
+    """metrics.jsonl's rows without their steps/s."""
+    return [{k: v for k, v in json.loads(line).items() if k != "sps"} for line in (out / METRICS_FILE).read_text().splitlines()]
+
+
+LATEST = UPDATES - 1  # the latest checkpoint of `unfinished`
+EDITED = "its record differs from the one saved"
+
+
+@pytest.mark.parametrize(
+    "spoil, problem",
+    [
+        (flip_64_bytes, "1 array(s) differ from those saved, first "),
+        (lambda c: edit_record(c, metrics_bytes=100), EDITED),
+        (lambda c: edit_record(c, metrics_bytes=0), EDITED),
+        (lambda c: edit_record(c, update=10), EDITED),
+        # Records written before they held checksums: checked against the state and metrics.jsonl.
+        (lambda c: edit_record(c, False, metrics_bytes=100), f"{METRICS_FILE}'s first 100 bytes end inside a row"),
+        (lambda c: edit_record(c, False, metrics_bytes=0), f"first 0 bytes are not its rows up to update {LATEST}"),
+        (lambda c: edit_record(c, False, update=10), f"its record says update 10, its state {LATEST}"),
+    ],
+    ids=["64 bytes flipped", "metrics_bytes 100", "metrics_bytes 0", "update 10", "old record, metrics_bytes 100",
+         "old record, metrics_bytes 0", "old record, update 10"],
+)  # fmt: skip
+def test_resume_passes_over_a_checkpoint_unlike_the_one_saved(finished, unfinished, capsys, spoil, problem):
+    spoil(unfinished / "checkpoints" / str(LATEST))
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    warning = one_line(capsys)
+    assert warning.startswith(f"warning: --resume {unfinished}: checkpoint at update {LATEST} is damaged ("), warning
+    assert problem in warning and warning.endswith("; falling back to the previous checkpoint"), warning
+    assert without_timing(unfinished) == without_timing(finished)
+    assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+
+
+def test_resume_refuses_metrics_edited_before_every_checkpoint_and_cuts_nothing(unfinished, capsys):
+    metrics = unfinished / METRICS_FILE
+    edited = metrics.read_text().replace('"update": 1,', '"update": 7,', 1)  # the first row, same length
+    metrics.write_text(edited)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert "no checkpoint restores: checkpoint at update 19 is damaged" in line, line
+    assert f"{METRICS_FILE}'s first" in line and "differ from those checkpointed" in line, line
+    assert metrics.read_text() == edited
 
 
 def test_resume_with_every_checkpoint_damaged_is_refused_in_one_line(unfinished, capsys):
@@ -331,6 +424,33 @@ def test_resume_of_a_foreign_or_broken_config_is_refused(unfinished, capsys, con
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
     line = one_line(capsys)
     assert message in line and line.startswith(f"error: --resume {unfinished}"), line
+
+
+@pytest.mark.parametrize(
+    "flags, code, message",
+    [
+        (["--no-compile-cache"], 0, None),
+        (["--no-quiet"], 0, None),
+        (["--no-shard-envs"], 0, None),
+        (["--compile-cache", "--quiet"], 0, None),
+        (["--shard-envs"], 2, "the run was made with --shard-envs False, not True"),
+        (["--no-norm-adv"], 2, "the run was made with --norm-adv True, not False"),
+        (["--no-such-flag"], 2, "Unrecognized options: --no-such-flag"),
+    ],
+)
+def test_resume_takes_the_negated_flags_and_refuses_other_ones_in_one_line(unfinished, capsys, flags, code, message):
+    assert train.main(["--resume", str(unfinished), *flags]) == code
+    if message:
+        line = one_line(capsys)
+        assert line.startswith("error: ") and message in line, line
+    assert (unfinished / SUMMARY_FILE).exists() == (code == 0)
+
+
+def test_no_field_is_named_like_a_negated_flag():
+    from rpo_jax.train import TrainArgs
+
+    names = [field.name for cls in (TrainArgs, Config) for field in dataclasses.fields(cls)]
+    assert not [name for name in names if name.startswith("no_")]
 
 
 # --------------------------------------------------------------------------------------------
@@ -466,6 +586,22 @@ def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
     assert experiment.main([*base, "--envs", "test/point_mas"]) == 2
     assert "did you mean test/point_mass" in one_line(capsys)
     assert not out.exists()
+
+
+def test_experiment_refuses_envs_that_would_share_a_directory(tmp_path, capsys, monkeypatch):
+    for module, factory in (("cola", "b_c"), ("cola_b", "c")):  # cola:b_c and cola_b:c, both cola_b_c
+        (tmp_path / f"{module}.py").write_text(f"from point_mass import PointMass\n{factory} = PointMass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "experiment"
+    # Refused before the runs are checked (--timesteps 10 is below a batch): without the check, in seconds.
+    args = ["ppo-vs-rpo", "--out", str(out), "--timesteps", "10", "--quiet", "--envs", "test/point_mass", "cola:b_c", "cola_b:c"]
+    assert experiment.main(args) == 2
+    line = one_line(capsys)
+    assert line == "error: --envs cola:b_c and cola_b:c would share the directory runs/cola_b_c; run them apart", line
+    assert not out.exists()
+    # The names of existing experiments' directories are kept, so that they continue.
+    job = experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]
+    assert experiment.run_dir(out, "test/point_mass", job) == out / "runs" / "test_point_mass" / job.name
 
 
 def test_library_errors_are_usage_errors():
