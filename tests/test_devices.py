@@ -26,7 +26,7 @@ def device_check(tmp_path: Path, check: str, *args: str, devices: int = 4) -> di
     out = tmp_path / f"{check}.json"
     environment = {
         **os.environ,
-        "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}",
+        "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}",
         "PYTHONPATH": str(ROOT),
         "JAX_PLATFORMS": "cpu",
     }
@@ -158,6 +158,7 @@ def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
     assert RunDir(tmp_path / "d2").read_summary()["devices"] == 2
 
 
+@pytest.mark.slow  # 17 s; host-side runs split stay in the test above
 def test_host_side_environments_split_over_devices_train_and_resume(tmp_path):
     # Each device steps a pool of its own (4 of the 8 simulators of each run); a resumed run
     # starts new pools on every device (the simulators are in no checkpoint), so it goes on from

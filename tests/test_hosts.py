@@ -43,7 +43,8 @@ def free_port() -> int:
 
 
 def command(args: list[str], devices: int = 1) -> subprocess.Popen:
-    environment = {**ENVIRONMENT, "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"}
+    forced = f"--xla_force_host_platform_device_count={devices}"
+    environment = {**ENVIRONMENT, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {forced}"}
     return subprocess.Popen(
         [sys.executable, "-m", "rpo_jax.train", *args], env=environment, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True,

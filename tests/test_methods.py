@@ -196,6 +196,7 @@ def test_the_papers_entropy_coefficients_all_train_in_one_sweep(tmp_path):
     assert all(np.isfinite(point["final_return_mean"]) for point in summary["grid"])
 
 
+@pytest.mark.slow  # 14 s; a sweep's runs stay in test_a_sweep_equals_its_runs_made_one_by_one
 def test_a_sweep_writes_every_run_with_its_values(tmp_path):
     out = tmp_path / "run"
     result = run_cli(
