@@ -233,3 +233,15 @@ def test_five_random_kills_leave_the_same_results(uninterrupted, tmp_path):
     result = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
     assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
+
+
+def test_jobs_picks_some_of_an_experiments_jobs_and_refuses_unknown_ones(capsys):
+    argv = ["truncation", "--suite", "reference", "--jobs", "rpo-terminate", "ppo-terminate"]
+    args = experiment.build_parser().parse_args(argv)
+    definition = experiment.resolve(args)
+    assert [job["name"] for job in definition["jobs"]] == ["ppo-terminate", "rpo-terminate"]  # the experiment's order
+    assert all(dict(job["config"])["truncation"] == "terminate" for job in definition["jobs"])
+    assert definition["envs"][0] == "gym/Pendulum-v1" and len(definition["envs"]) == 5
+    assert experiment.main(["truncation", "--envs", "cartpole", "--jobs", "rpo-forever"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--jobs rpo-forever: truncation has jobs ppo-bootstrap" in err
