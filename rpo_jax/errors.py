@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
+from typing import Iterator
 
 
 class UsageError(ValueError):
@@ -14,8 +18,46 @@ class Diverged(Exception):
     checkpointed. Reported as one line with exit code 1: a diverged run is a failed run."""
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's or `kill`'s stop), raised where Ctrl-C raises KeyboardInterrupt, so
+    that it stops a run the same way: resumable, with the command that resumes it."""
+
+
 class Interrupted(Exception):
-    """Ctrl-C during training; carries the run directory to resume."""
+    """Ctrl-C or SIGTERM during training; carries the run directory to resume."""
+
+    def __init__(self, out: object, terminated: bool = False) -> None:
+        super().__init__(out)
+        self.terminated = terminated
+
+
+def interrupt_exit_code(error: BaseException) -> int:
+    """128 + the signal's number, as a shell reports a process that the signal ended: 143 for
+    SIGTERM, 130 for Ctrl-C."""
+    terminated = isinstance(error, Terminated) or getattr(error, "terminated", False)
+    return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
+
+
+def interrupt_word(error: BaseException) -> str:
+    return "terminated" if interrupt_exit_code(error) == 128 + signal.SIGTERM else "interrupted"
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises Terminated in the main thread; the previous handler after it.
+    Elsewhere than the main thread (a library caller's worker) nothing changes: only it takes signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def raise_terminated(signum: int, frame: object) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def usage_failure(error: UsageError) -> int:

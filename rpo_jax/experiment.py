@@ -29,7 +29,10 @@ from rpo_jax import envs, report
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.config import PRESETS, SWEEPABLE
 from rpo_jax.envs import dmc_tasks
-from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
+from rpo_jax.errors import (
+    Diverged, Interrupted, UsageError, diverged_failure, interrupt_exit_code, interrupt_word, os_failure,
+    sigterm_as_interrupt, usage_failure,
+)  # fmt: skip
 from rpo_jax.files import write_json
 from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
 
@@ -351,6 +354,12 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; Ctrl-C and SIGTERM stop it resumably (exit codes 130 and 143)."""
+    with sigterm_as_interrupt():
+        return run_command(argv)
+
+
+def run_command(argv: Sequence[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
         from rpo_jax import devices
@@ -365,11 +374,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:
-        print(f"interrupted in {interrupted}; the same command continues the experiment", file=sys.stderr)
-        return 130
-    except KeyboardInterrupt:
-        print("interrupted; the same command continues the experiment", file=sys.stderr)
-        return 130
+        print(f"{interrupt_word(interrupted)} in {interrupted}; the same command continues the experiment", file=sys.stderr)
+        return interrupt_exit_code(interrupted)
+    except KeyboardInterrupt as error:
+        print(f"{interrupt_word(error)}; the same command continues the experiment", file=sys.stderr)
+        return interrupt_exit_code(error)
     print(f"report: {out / report.REPORT_FILE}")
     return 0
 

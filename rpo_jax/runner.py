@@ -35,7 +35,7 @@ from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.devices import is_primary, make_placement
-from rpo_jax.errors import Diverged, Interrupted, UsageError
+from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError
 from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 from rpo_jax.scores import tail_mean
@@ -294,8 +294,8 @@ def use_compile_cache(directory: Path | None) -> None:
 def _interruptible(out: Path) -> Iterator[None]:
     try:
         yield
-    except KeyboardInterrupt:
-        raise Interrupted(out) from None
+    except KeyboardInterrupt as error:
+        raise Interrupted(out, isinstance(error, Terminated)) from None
 
 
 @dataclasses.dataclass

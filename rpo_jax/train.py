@@ -28,7 +28,10 @@ from typing import Any, Literal, Sequence
 import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
-from rpo_jax.errors import Diverged, Interrupted, UsageError, diverged_failure, os_failure, usage_failure
+from rpo_jax.errors import (
+    Diverged, Interrupted, UsageError, diverged_failure, interrupt_exit_code, interrupt_word, os_failure,
+    sigterm_as_interrupt, usage_failure,
+)  # fmt: skip
 from rpo_jax.scores import with_spread
 
 PROG = "python -m rpo_jax.train"
@@ -232,7 +235,13 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """The command line: exit code 0, 2 for bad input, 1 for a diverged run, 130 or 143 when Ctrl-C
+    or SIGTERM stopped it (resumable)."""
+    with sigterm_as_interrupt():
+        return run_command(sys.argv[1:] if argv is None else list(argv))
+
+
+def run_command(argv: list[str]) -> int:
     try:
         args = parse_args(argv)
         from rpo_jax import devices  # JAX, first used here: the CPU split and the processes joined first
@@ -249,11 +258,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:
-        print(f"interrupted; continue with: {PROG} --resume {interrupted}", file=sys.stderr)
-        return 130
-    except KeyboardInterrupt:  # before the run directory was made: nothing to continue
-        print("interrupted; nothing was written", file=sys.stderr)
-        return 130
+        print(f"{interrupt_word(interrupted)}; continue with: {PROG} --resume {interrupted}", file=sys.stderr)
+        return interrupt_exit_code(interrupted)
+    except KeyboardInterrupt as error:  # before the run directory was made: nothing to continue
+        print(f"{interrupt_word(error)}; nothing was written", file=sys.stderr)
+        return interrupt_exit_code(error)
     if devices.is_primary():
         print_summary(summary)
     return 0

@@ -8,7 +8,9 @@ import dataclasses
 import errno
 import io
 import json
+import os
 import shutil
+import signal
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -509,6 +511,25 @@ def test_ctrl_c_during_compilation_exits_130_with_the_resume_hint(tmp_path, caps
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 130
     assert one_line(capsys) == f"interrupted; continue with: python -m rpo_jax.train --resume {out}"
     assert RunDir(out).has_config()
+
+
+def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_path, capsys, monkeypatch):
+    """A real SIGTERM to this process while the runs compile, as a scheduler sends it: handled as
+    Ctrl-C is, and the previous SIGTERM handler is back afterwards."""
+    compile_runs = runner.compile_runs
+
+    def terminated(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return compile_runs(*args, **kwargs)
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(runner, "compile_runs", terminated)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 143
+    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    assert signal.getsignal(signal.SIGTERM) is before
+    monkeypatch.setattr(runner, "compile_runs", compile_runs)
+    assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
 
 
 # --------------------------------------------------------------------------------------------
