@@ -31,15 +31,12 @@ class Interrupted(Exception):
         self.terminated = terminated
 
 
-def interrupt_exit_code(error: BaseException) -> int:
-    """128 + the signal's number, as a shell reports a process that the signal ended: 143 for
-    SIGTERM, 130 for Ctrl-C."""
+def interrupt_failure(error: BaseException, after: str) -> int:
+    """Prints how the run stopped ("interrupted" by Ctrl-C, "terminated" by SIGTERM) followed by
+    `after` as one line; returns 128 + the signal's number, as a shell reports it: 130 or 143."""
     terminated = isinstance(error, Terminated) or getattr(error, "terminated", False)
+    print(f"{'terminated' if terminated else 'interrupted'}{after}", file=sys.stderr)
     return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
-
-
-def interrupt_word(error: BaseException) -> str:
-    return "terminated" if interrupt_exit_code(error) == 128 + signal.SIGTERM else "interrupted"
 
 
 @contextlib.contextmanager

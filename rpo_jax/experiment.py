@@ -30,7 +30,7 @@ from rpo_jax.cli import ArgumentParser
 from rpo_jax.config import PRESETS, SWEEPABLE
 from rpo_jax.envs import dmc_tasks
 from rpo_jax.errors import (
-    Diverged, Interrupted, UsageError, diverged_failure, interrupt_exit_code, interrupt_word, os_failure,
+    Diverged, Interrupted, UsageError, diverged_failure, interrupt_failure, os_failure,
     sigterm_as_interrupt, usage_failure,
 )  # fmt: skip
 from rpo_jax.files import write_json
@@ -374,11 +374,9 @@ def run_command(argv: Sequence[str] | None) -> int:
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:
-        print(f"{interrupt_word(interrupted)} in {interrupted}; the same command continues the experiment", file=sys.stderr)
-        return interrupt_exit_code(interrupted)
+        return interrupt_failure(interrupted, f" in {interrupted}; the same command continues the experiment")
     except KeyboardInterrupt as error:
-        print(f"{interrupt_word(error)}; the same command continues the experiment", file=sys.stderr)
-        return interrupt_exit_code(error)
+        return interrupt_failure(error, "; the same command continues the experiment")
     print(f"report: {out / report.REPORT_FILE}")
     return 0
 

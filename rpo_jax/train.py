@@ -29,7 +29,7 @@ import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import (
-    Diverged, Interrupted, UsageError, diverged_failure, interrupt_exit_code, interrupt_word, os_failure,
+    Diverged, Interrupted, UsageError, diverged_failure, interrupt_failure, os_failure,
     sigterm_as_interrupt, usage_failure,
 )  # fmt: skip
 from rpo_jax.scores import with_spread
@@ -258,11 +258,9 @@ def run_command(argv: list[str]) -> int:
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:
-        print(f"{interrupt_word(interrupted)}; continue with: {PROG} --resume {interrupted}", file=sys.stderr)
-        return interrupt_exit_code(interrupted)
+        return interrupt_failure(interrupted, f"; continue with: {PROG} --resume {interrupted}")
     except KeyboardInterrupt as error:  # before the run directory was made: nothing to continue
-        print(f"{interrupt_word(error)}; nothing was written", file=sys.stderr)
-        return interrupt_exit_code(error)
+        return interrupt_failure(error, "; nothing was written")
     if devices.is_primary():
         print_summary(summary)
     return 0
