@@ -36,9 +36,17 @@ def _save(fig: Any, path: Path) -> str:
     return path.name
 
 
-def curves(path: Path, title: str, series: dict[str, list[list[dict]]], metrics: Sequence[tuple[str, str]], colours: dict) -> str:
+def curves(
+    path: Path,
+    title: str,
+    series: dict[str, list[list[dict]]],
+    metrics: Sequence[tuple[str, str]],
+    colours: dict,
+    marks: dict[str, float] | None = None,
+) -> str:
     """One panel per (metric, label); per series (label -> runs, each a list of rows in update
-    order) the mean over runs against environment steps, with a band of one std."""
+    order) the mean over runs against environment steps, with a band of one std. `marks` (label
+    -> value) draws a dashed line across the first panel in the series' colour: a published final value."""
     plt = pyplot()
     fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.5), squeeze=False)
     for label, runs in series.items():
@@ -49,6 +57,8 @@ def curves(path: Path, title: str, series: dict[str, list[list[dict]]], metrics:
             mean, std = values.mean(axis=0), values.std(axis=0)
             axis.plot(steps, mean, color=colours[label], label=label, linewidth=1.5)
             axis.fill_between(steps, mean - std, mean + std, color=colours[label], alpha=0.2, linewidth=0)
+    for label, value in (marks or {}).items():
+        axes[0][0].axhline(value, color=colours[label], linestyle="--", linewidth=1, label=f"{label}: reference")
     for axis, (_, label) in zip(axes[0], metrics):
         axis.set_xlabel("environment steps")
         axis.set_ylabel(label)

@@ -26,7 +26,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from rpo_jax import aggregate, figures
+from rpo_jax import aggregate, figures, reference
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, os_failure, usage_failure
 from rpo_jax.files import write_text
@@ -49,6 +49,7 @@ METRIC_COLUMNS = (
 EVAL_COLUMN = "eval_return"
 COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
 TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
+
 
 def write_results(out: Path, rows: Iterable[dict]) -> None:
     """results.csv through a temporary file, so a crash never leaves half of it."""
@@ -318,18 +319,20 @@ def _aggregate_section(envs: list[str], summary: dict, scores: dict, variants: l
     return lines
 
 
-def write_figures(rows: Sequence[dict], scores: dict, out: Path) -> list[str]:
-    """The PNG files, as paths relative to the report."""
+def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict | None = None) -> list[str]:
+    """The PNG files, as paths relative to the report; the curves mark `published`'s final values."""
     out.mkdir(parents=True, exist_ok=True)
     variants = unique(row["variant"] for row in rows)
     colours = figures.colours_for(variants)
     runs = group_runs(rows)
+    algos = {row["variant"]: row["algo"] for row in rows}
     written = []
     for env in unique(row["env"] for row in rows):
         series = {v: list(runs[env, v].values()) for v in variants if (env, v) in runs}
         panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy (sum over action dimensions)"))
         path = out / f"{figures.slug(env)}-curves.png"
-        written.append(figures.curves(path, f"{env}: mean ± std over seeds", series, panels, colours))
+        marks = reference.marks(published or {}, env, {v: algos[v] for v in series})
+        written.append(figures.curves(path, f"{env}: mean ± std over seeds", series, panels, colours, marks))
     table = aggregates(scores, variants)
     if table:
         bars = {v: (t["iqm"], t["low"], t["high"]) for v, t in table.items()}
@@ -342,8 +345,10 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path) -> list[str]:
     return written
 
 
-def build(out: Path, directories: Sequence[Path]) -> Path:
-    """Writes out/report.md and out/figures/ from the results in `directories`."""
+def build(out: Path, directories: Sequence[Path], reference_file: Path | None = None) -> Path:
+    """Writes out/report.md and out/figures/ from the results in `directories`, beside the
+    published figures in `reference_file` where given."""
+    published = reference.read(reference_file) if reference_file else {}
     rows = []
     for directory in directories:
         for row in read_results(directory):
@@ -357,18 +362,21 @@ def build(out: Path, directories: Sequence[Path]) -> Path:
     envs = unique(row["env"] for row in rows)
     variants = unique(row["variant"] for row in rows)
     algos = {row["variant"]: row["algo"] for row in rows}
-    written = [f"{FIGURES_DIR}/{name}" for name in write_figures(rows, scores, out / FIGURES_DIR)] if rows else []
+    figure_files = write_figures(rows, scores, out / FIGURES_DIR, published) if rows else []
+    written = [f"{FIGURES_DIR}/{name}" for name in figure_files]
     experiments = unique(row["experiment"] for row in rows)
     seeds = sorted({s["seeds"] for s in summary.values()})
     steps = sorted({s["env_steps"] for s in summary.values()})
     lines = [
         f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
         "",
-        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}` from results.csv "
+        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}"
+        f"{f' --reference {reference_file}' if reference_file else ''}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
         "",
         *_result_tables(summary, envs, variants),
+        *reference.section(summary, published, algos, _cell),
         *_aggregate_section(envs, summary, scores, variants, algos),
         *(f"![{name}]({name})" for name in written),
         "",
@@ -431,6 +439,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         "dirs", nargs="+", type=Path, metavar="DIR", help="experiment directories with results.csv, or one run directory"
     )
     parser.add_argument("--out", type=Path, help="where report.md and figures/ go (default: DIR when only one)")
+    parser.add_argument(
+        "--reference", type=Path, metavar="CSV",
+        help="published figures to set beside ours (env, algo, mean, std, seeds, budget, source), "
+        "e.g. benchmarks/reference/cleanrl_rpo_8m.csv",
+    )  # fmt: skip
     try:
         args = parser.parse_args(argv)
         if args.out is None and len(args.dirs) > 1:
@@ -439,7 +452,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if len(args.dirs) == 1 and not (args.dirs[0] / RESULTS_FILE).is_file() and run_dir.has_config():
             path = build_run(run_dir, args.out or args.dirs[0])
         else:
-            path = build(args.out or args.dirs[0], args.dirs)
+            path = build(args.out or args.dirs[0], args.dirs, args.reference)
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:

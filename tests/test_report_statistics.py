@@ -76,3 +76,35 @@ def test_the_report_carries_every_statistic(table, tmp_path):
     assert "| rpo | ppo | 0.938 [" in text  # probability of improvement
     assert "250.00 ± 129.10 [" in text
     assert (tmp_path / report.FIGURES_DIR / "performance-profile.png").is_file()
+
+
+REFERENCE_CSV = """env,algo,mean,std,seeds,budget,source
+dmc/walker-walk,rpo,260.0,30.0,10,1000,paper
+dmc/walker-walk,ppo,900.0,30.0,10,1000,paper
+"""
+
+
+def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table, tmp_path):
+    rows, _, _ = table
+    (tmp_path / "exp").mkdir()
+    report.write_results(tmp_path / "exp", rows)
+    (tmp_path / "ref.csv").write_text(REFERENCE_CSV)
+    text = report.build(tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    lines = {line.split(" | ")[1]: line for line in text.splitlines() if line.startswith("| dmc/walker-walk | ")}
+    # RPO's seeds 100..400 put 260 inside their interval around 250; PPO's 0..100 keep 900 out.
+    assert "| 250.00 ± 129.10 [" in lines["rpo"] and "| yes |" in lines["rpo"] and "260.00 ± 30.00 | 10 | 1,000 |" in lines["rpo"]
+    assert "| no |" in lines["ppo"] and "| yes |" not in lines["ppo"]
+    assert "--reference" in text and "cartpole | rpo" not in text.split("## Beside the published reference")[1].split("##")[0]
+
+
+@pytest.mark.parametrize(
+    ("contents", "named"),
+    [
+        ("env,algo,mean\nx,rpo,1\n", "missing column(s) std, seeds, budget, source"),
+        (REFERENCE_CSV.replace("260.0", "lots"), ":2: "),
+    ],
+)
+def test_a_bad_reference_table_is_one_line(tmp_path, contents, named):
+    (tmp_path / "ref.csv").write_text(contents)
+    with pytest.raises(report.UsageError, match=named.replace("(", r"\(").replace(")", r"\)")):
+        report.reference.read(tmp_path / "ref.csv")
