@@ -78,17 +78,22 @@ def raw_host_steps_per_second(env: HostEnv, num_envs: int, num_steps: int, repea
 
 
 def train_steps_per_second(
-    name: str, preset: str, num_envs: int, num_updates: int, repeats: int
+    name: str, preset: str, num_envs: int, num_steps: int | None, num_updates: int, repeats: int, num_seeds: int = 1
 ) -> tuple[float, float]:
+    """Training steps/s summed over `num_seeds` seeds trained in one program (vmapped, as
+    `train --num-seeds` does), and the program's compile time."""
     config = dataclasses.replace(PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
+    config = dataclasses.replace(config, num_steps=num_steps or config.num_steps)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
     trainer = ppo.make_trainer(config, envs.make_env(name))
-    state = jax.jit(trainer.init)(jax.random.PRNGKey(0))
+    keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
+    state = jax.jit(jax.vmap(trainer.init))(keys)
     start = time.perf_counter()
-    run = jax.jit(lambda s: trainer.scan_updates(s, num_updates)).lower(state).compile()
+    run = jax.jit(jax.vmap(lambda s: trainer.scan_updates(s, num_updates))).lower(state).compile()
     compile_seconds = time.perf_counter() - start
     jax.block_until_ready(run(state))  # warm-up
-    return config.batch_size * num_updates / best_of(lambda: run(state), repeats), compile_seconds
+    steps = num_seeds * config.batch_size * num_updates
+    return steps / best_of(lambda: run(state), repeats), compile_seconds
 
 
 def main() -> int:
@@ -98,8 +103,13 @@ def main() -> int:
     parser.add_argument(
         "--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training"
     )
+    parser.add_argument("--num-steps", type=int, help="rollout length of the timed training (default: the preset's)")
     parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
     parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
+    parser.add_argument(
+        "--seeds", type=int, default=1,
+        help="also time this many seeds trained in one program; seeds_wall_ratio is its wall time over one seed's",
+    )  # fmt: skip
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
@@ -115,20 +125,29 @@ def main() -> int:
         else None
     )
     env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
-    train_sps, compile_seconds = train_steps_per_second(
-        args.env, args.preset, args.num_envs, args.train_updates, args.repeats
+    training = (args.env, args.preset, args.num_envs, args.num_steps, args.train_updates, args.repeats)
+    train_sps, compile_seconds = train_steps_per_second(*training)
+    seeds_sps = (
+        train_steps_per_second(*training, args.seeds)[0]
+        if args.seeds > 1
+        else None
     )
     device = jax.devices()[0]
     result = {
         "env": args.env,
         "num_envs": args.num_envs,
         "preset": args.preset,
+        "num_steps": args.num_steps,
         "raw_sps": raw_sps,
         "env_sps": env_sps,
         "train_sps": train_sps,
         "train_to_env_ratio": train_sps / env_sps,
         "train_to_raw_ratio": train_sps / raw_sps if raw_sps else None,
         "compile_seconds": compile_seconds,
+        "seeds": args.seeds,
+        "seeds_train_sps": seeds_sps,
+        # The same steps per seed: K seeds' wall time over one seed's is K * (1-seed sps / K-seed sps).
+        "seeds_wall_ratio": args.seeds * train_sps / seeds_sps if seeds_sps else None,
         "device": f"{device.platform}:{device.device_kind}",
         "jax": jax.__version__,
     }
@@ -138,6 +157,9 @@ def main() -> int:
         f"{args.env:<20}{args.num_envs:>10}{raw}{env_sps:>14,.0f}{train_sps:>14,.0f}"
         f"{compile_seconds:>11.1f}  {result['device']}"
     )
+    if seeds_sps:
+        ratio = result["seeds_wall_ratio"]
+        print(f"{args.seeds} seeds in one program: {seeds_sps:,.0f} steps/s, wall time {ratio:.2f}x one seed's")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     return 0

@@ -217,3 +217,48 @@ def test_evaluation_runs_on_a_host_env():
     returns = evaluate.episode_returns(host_point_mass(), zero_policy, 3, jax.random.PRNGKey(0), True)
     # Five steps each, reward -position^2 from a start in (-1, 1)^2.
     assert returns.shape == (3,) and np.all(returns <= 0) and np.all(returns > -EPISODE * 2)
+
+
+class SplitStepPool(SequentialSimulators):
+    """The point masses with envpool's split step; every call is logged, to see the order."""
+
+    calls: list[str] = []
+
+    def send(self, action: np.ndarray) -> None:
+        SplitStepPool.calls.append("send")
+        self.pending = action
+
+    def receive(self) -> tuple[np.ndarray, ...]:
+        SplitStepPool.calls.append("receive")
+        return SequentialSimulators.step(self, self.pending)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        SplitStepPool.calls.append("step")
+        return SequentialSimulators.step(self, action)
+
+
+def test_runs_vmapped_over_seeds_step_their_pools_side_by_side():
+    def split_step(num_envs, seed):
+        return SplitStepPool(num_envs, seed, PointMassSim, lambda sim: sim.reset(), lambda sim, action: sim.step(action))
+
+    env = envs.vectorize(HostEnv(SPEC, split_step), 2)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
+    actions = jnp.linspace(-1, 1, 2 * EPISODE * 2).reshape(2 * EPISODE, 2, 1)
+    SplitStepPool.calls.clear()
+    together = rollout_runs(env, keys, actions)
+    # One callback per step for the three runs: three sends, then three receives.
+    assert SplitStepPool.calls[:6] == ["send"] * 3 + ["receive"] * 3 and "step" not in SplitStepPool.calls
+    alone = [rollout(env, key, actions)[1] for key in keys]
+    for run, one in enumerate(alone):
+        for x, y in zip(jax.tree.leaves(one), jax.tree.leaves(together), strict=True):
+            np.testing.assert_array_equal(x, y[run])
+
+
+def rollout_runs(env, keys, actions):
+    @jax.jit
+    @jax.vmap
+    def runs(key):
+        state, _ = env.reset(key)
+        return jax.lax.scan(env.step, state, actions)[1]
+
+    return runs(keys)

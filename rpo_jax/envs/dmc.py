@@ -74,7 +74,15 @@ class DmcSimulators:
         return obs[np.argsort(env_id)]
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
-        ts = self.pool.step(np.asarray(action, np.float64), self.env_ids)
+        self.send(action)
+        return self.receive()
+
+    def send(self, action: np.ndarray) -> None:
+        """Starts a step on envpool's threads; `receive` collects it."""
+        self.pool.send(np.asarray(action, np.float64), self.env_ids)
+
+    def receive(self) -> tuple[np.ndarray, ...]:
+        ts = self.pool.recv()
         env_id, reached = self._flatten(ts.observation)
         order = np.argsort(env_id)
         reached = reached[order]

@@ -6,8 +6,10 @@ environment state that JAX carries is one integer, the handle of a pool of `num_
 simulators that lives in this process; `reset(key)` builds a new pool seeded from `key` and
 returns its handle. The order of steps within a run is fixed by data (each step's action
 depends on the previous step's observation). Under `jax.vmap` over runs (train.py's seeds and
-sweep points) the callbacks run once per run, in turn, each with that run's handle, so every
-run steps its own pool and the same key always gives the same episodes.
+sweep points) every run steps its own pool, so the same key always gives the same episodes. A
+step of all runs is one callback: pools that can start a step and collect it later (envpool's
+`send`/`recv`) are all started before any is collected, so their threads run at the same time
+and the callback's overhead is paid once per step rather than once per run.
 
 When JAX computes on the CPU the callbacks are `jax.experimental.buffer_callback`s, which hand
 the host function XLA's own buffers: the inputs are read and the outputs written in place.
@@ -56,6 +58,24 @@ class HostSimulators(Protocol):
         ...
 
 
+class SplitStepSimulators(HostSimulators, Protocol):
+    """Simulators whose step can be started and collected apart, so that several pools step at
+    once: `step(action)` is `send(action)` then `receive()`."""
+
+    def send(self, action: np.ndarray) -> None: ...
+
+    def receive(self) -> tuple[np.ndarray, ...]: ...
+
+
+def step_side_by_side(pools: list[HostSimulators], actions: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+    """Steps pools[i] with actions[i]; split-step pools all start before any is collected."""
+    if len(pools) > 1 and len({id(pool) for pool in pools}) == len(pools) and all(hasattr(p, "send") for p in pools):
+        for pool, action in zip(pools, actions):
+            pool.send(action)
+        return [pool.receive() for pool in pools]
+    return [pool.step(action) for pool, action in zip(pools, actions)]
+
+
 # (num_envs, seed) -> a fresh pool whose randomness follows from seed alone.
 SimulatorFactory = Callable[[int, int], HostSimulators]
 
@@ -102,7 +122,12 @@ class BatchedHostEnv:
         return np.asarray(handle, np.int32), pool.reset()
 
     def _host_step(self, handle: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, ...]:
-        return self.pools[int(handle)].step(action)
+        """handle [*runs] and action [*runs, N, act]: under `jax.vmap` the runs' steps arrive in
+        one call (`runs` empty without it), and their pools are stepped side by side."""
+        batch = handle.shape
+        pools = [self.pools[int(h)] for h in handle.reshape(-1)]
+        results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
+        return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))
 
     def close(self) -> None:
         """Closes and drops every pool that `reset` built; their handles are not valid any more."""
@@ -110,14 +135,18 @@ class BatchedHostEnv:
         for pool in pools.values():
             pool.close()
 
-    def _call(self, host_fn: Callable[..., tuple], shapes: tuple, *args: jax.Array) -> tuple[jax.Array, ...]:
-        """`host_fn` (numpy arrays in, a tuple of them out) called from the compiled program."""
+    def _call(
+        self, host_fn: Callable[..., tuple], shapes: tuple, *args: jax.Array, vmap_method: str = "sequential"
+    ) -> tuple[jax.Array, ...]:
+        """`host_fn` (numpy arrays in, a tuple of them out) called from the compiled program;
+        under `jax.vmap`, once per run ("sequential") or once for all ("broadcast_all")."""
         if not self.in_place:
 
             def copying(*arrays: jax.Array) -> tuple[np.ndarray, ...]:
                 results = host_fn(*(np.asarray(array) for array in arrays))
                 return tuple(np.asarray(result, shape.dtype) for result, shape in zip(results, shapes))
 
+            # io_callback has no batched form: under vmap it is called once per run.
             return io_callback(copying, shapes, *args)
 
         def in_place(ctx: object, out: tuple, *buffers: object) -> None:
@@ -126,9 +155,8 @@ class BatchedHostEnv:
             for buffer, result in zip(out, results):
                 np.asarray(buffer)[...] = result
 
-        # The side effect keeps XLA from dropping or merging calls; "sequential" makes vmap call
-        # the function once per run.
-        return buffer_callback(in_place, shapes, has_side_effect=True, vmap_method="sequential")(*args)
+        # The side effect keeps XLA from dropping or merging calls.
+        return buffer_callback(in_place, shapes, has_side_effect=True, vmap_method=vmap_method)(*args)
 
     def reset(self, key: jax.Array) -> tuple[HostState, TimeStep]:
         # Drawn in JAX so that raw and typed keys both work; below 2^30 so that a simulator that
@@ -139,7 +167,7 @@ class BatchedHostEnv:
 
     def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
         obs, reward, terminated, truncated, final_obs = self._call(
-            self._host_step, self.step_shapes, state.handle, action.astype(jnp.float32)
+            self._host_step, self.step_shapes, state.handle, action.astype(jnp.float32), vmap_method="broadcast_all"
         )
         return state, TimeStep(obs, reward, terminated, truncated, final_obs)
 
