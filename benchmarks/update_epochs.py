@@ -1,0 +1,56 @@
+"""Time of the minibatch epochs alone (`ppo.minibatch_epochs`), one seed against K seeds vmapped.
+
+    python benchmarks/update_epochs.py --env dmc/pendulum-swingup --num-envs 8 --num-steps 256 --seeds 5
+
+The batch comes from one real rollout of each seed; the epochs program is compiled ahead of time
+for each count of seeds and timed (best of --repeats): how the update alone scales with seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import jax
+
+from rpo_jax import envs, ppo
+from rpo_jax.config import PRESETS
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="dmc/pendulum-swingup")
+    parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    parser.add_argument("--num-envs", type=int, default=8)
+    parser.add_argument("--num-steps", type=int, default=256)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    config = dataclasses.replace(PRESETS[args.preset], num_envs=args.num_envs, num_steps=args.num_steps, rpo_alpha=0.5)
+    config = dataclasses.replace(config, total_timesteps=config.batch_size)
+    trainer = ppo.make_trainer(config, envs.make_env(args.env))
+    state = jax.jit(jax.vmap(trainer.init))(jax.random.split(jax.random.PRNGKey(0), args.seeds))
+
+    def batch_of(s: ppo.TrainState) -> ppo.Batch:
+        traj = ppo.rollout(trainer, s.params, s.env_state, s.obs, s.key)[2]
+        return ppo.make_batch(trainer, s.params, traj, s.value_stats)[0]
+
+    def epochs(s: ppo.TrainState, batch: ppo.Batch) -> tuple:
+        return ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, batch, s.key)
+
+    batch = jax.jit(jax.vmap(batch_of))(state)
+    for seeds in (1, args.seeds):
+        inputs = jax.tree.map(lambda x, n=seeds: x[:n], (state, batch))
+        run = jax.jit(jax.vmap(epochs)).lower(*inputs).compile()
+        jax.block_until_ready(run(*inputs))
+        times = []
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            jax.block_until_ready(run(*inputs))
+            times.append(time.perf_counter() - start)
+        print(f"{args.env}: {seeds} seed(s), minibatch epochs {min(times) * 1e3:.1f} ms per update")
+
+
+if __name__ == "__main__":
+    main()
