@@ -1,0 +1,99 @@
+"""Failures around the processes and the disk: joining processes that never meet or name a port
+JAX cannot use, a peer that dies, a disk that fills up at each write, damaged checkpoints and a
+SIGTERM during a checkpoint's write. Each ends in one line and a known exit code, and leaves a
+run that resumes exactly where something resumable was written."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+from test_hosts import TINY as CARTPOLE, command, free_port, printed
+
+from rpo_jax import train
+
+# --------------------------------------------------------------------------------------------
+# Joining processes
+
+
+def layout(port: int | str, process: int, *more: str) -> list[str]:
+    return ["--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(process), *more]
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (layout(99999, 0), "--coordinator localhost:99999: the port must be in 1..65535, got 99999"),
+        (layout(0, 1), "--coordinator localhost:0: the port must be in 1..65535, got 0"),
+        (["--coordinator", "localhost:x", *layout(1, 0)[2:]], "--coordinator must be HOST:PORT"),
+        (["--coordinator", ":1234", *layout(1, 0)[2:]], "--coordinator must be HOST:PORT"),
+        (layout(1234, 0, "--coordinator-timeout", "0"), "--coordinator-timeout must be >= 1 second, got 0"),
+    ],
+    ids=["port 99999", "port 0", "port not a number", "no host", "timeout 0"],
+)
+def test_a_coordinator_jax_cannot_use_is_refused_before_joining(tmp_path, capsys, flags, message):
+    # Refused before JAX is asked to join (which, in this process, it then never is).
+    out = tmp_path / "run"
+    assert train.main([*CARTPOLE, *flags, "--out", str(out)]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not out.exists()
+
+
+def test_process_0_on_a_port_in_use_is_refused_in_one_line(tmp_path, capsys):
+    with socket.socket() as taken:
+        taken.bind(("", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert train.main([*CARTPOLE, *layout(port, 0), "--out", str(tmp_path / "run")]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert lines == [f"error: --coordinator localhost:{port}: process 0 cannot listen on port {port} here "
+                     "(Address already in use); choose a free port"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "process, why",
+    [
+        (1, "nothing answered at the coordinator localhost:{port} (process 0, started with the same --coordinator)"),
+        (0, "not all 2 processes joined the coordinator localhost:{port}"),
+    ],
+    ids=["no process 0", "process 0 alone"],
+)
+def test_processes_that_never_meet_end_in_one_line_after_the_timeout(tmp_path, process, why):
+    """Where JAX, after 300 s, aborts with a C++ stack dump: here one line and exit code 2."""
+    port = free_port()
+    started = time.monotonic()
+    process = command([*CARTPOLE, *layout(port, process, "--coordinator-timeout", "2"), "--out", str(tmp_path / "run")])
+    out, err = process.communicate(timeout=120)
+    result = {"code": process.returncode, "stdout": out, "stderr": err}
+    assert result["code"] == 2 and time.monotonic() - started < 60, result
+    assert printed(result) == [
+        f"error: could not join the run's processes: {why.format(port=port)} within 2 s; start every --process-id "
+        "with the same --coordinator and --num-processes, or wait longer with --coordinator-timeout SECONDS"
+    ]
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow  # two processes compile and train for about 30 s
+def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
+    """Process 1 killed mid-run: process 0 ends within --coordinator-timeout (JAX's heartbeat),
+    not after JAX's default 100 s, its checkpoints kept."""
+    port, out = free_port(), tmp_path / "run"
+    flags = [*CARTPOLE, "--total-timesteps", str(8 * 8 * 4000), "--checkpoint-every", str(8 * 8 * 100)]
+    flags += ["--coordinator-timeout", "5", "--out", str(out)]
+    processes = [command([*flags, *layout(port, index)]) for index in (0, 1)]
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "checkpoints").is_dir() or not any(p.name.isdigit() for p in (out / "checkpoints").iterdir()):
+            assert time.monotonic() < deadline and processes[0].poll() is None
+            time.sleep(0.5)
+        processes[1].kill()
+        killed = time.monotonic()
+        processes[0].wait(timeout=60)
+        assert processes[0].returncode != 0 and time.monotonic() - killed < 5 + 10
+    finally:
+        for process in processes:
+            process.kill()
+            process.communicate()
+    assert any(p.name.isdigit() for p in (out / "checkpoints").iterdir())
