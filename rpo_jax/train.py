@@ -257,7 +257,7 @@ def run_command(argv: list[str]) -> int:
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:
-        return os_failure(error)
+        return os_failure(error, f"continue with: {PROG} --resume {getattr(error, 'out', '')}")
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:

@@ -5,13 +5,22 @@ run that resumes exactly where something resumable was written."""
 
 from __future__ import annotations
 
+import errno
+import os
+import shutil
 import socket
+import subprocess
 import time
 
+import orbax.checkpoint as ocp
 import pytest
 from test_hosts import TINY as CARTPOLE, command, free_port, printed
+from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
 
-from rpo_jax import train
+from rpo_jax import runner, train
+from rpo_jax.rundir import PARAMS_FILE, RunDir
+
+__all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
 
 # --------------------------------------------------------------------------------------------
 # Joining processes
@@ -97,3 +106,87 @@ def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
             process.kill()
             process.communicate()
     assert any(p.name.isdigit() for p in (out / "checkpoints").iterdir())
+
+
+# --------------------------------------------------------------------------------------------
+# A full disk at each write of a run
+
+
+def fails_at(call: int, error: Exception):
+    """A stand-in that raises `error` at its `call`-th call and does `real`'s work before it."""
+
+    def wrap(real):
+        calls = []
+
+        def failing(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == call:
+                raise error
+            return real(*args, **kwargs)
+
+        return failing
+
+    return wrap
+
+
+ENOSPC = OSError(errno.ENOSPC, "No space left on device")
+# What tensorstore raises through orbax for a full disk: no OSError, the cause in its text.
+ORBAX_FULL = ValueError('RESOURCE_EXHAUSTED: Error writing "w/0" in OCDBT database: No space left on device')
+WRITES = {
+    # name: (object, attribute, failing call, error, resumable)
+    "metrics, first row": (runner, "write_rows", 1, ENOSPC, False),
+    "metrics, after checkpoints": (runner, "write_rows", 5, ENOSPC, True),
+    "first checkpoint": (ocp.CheckpointManager, "save", 1, ORBAX_FULL, False),
+    "later checkpoint": (ocp.CheckpointManager, "save", 4, ORBAX_FULL, True),
+    "checkpoint, plain Exception": (ocp.CheckpointManager, "save", 4, Exception("tensorstore: Failed writing"), True),
+    "params": (RunDir, "write_params", 1, ENOSPC, True),
+    "summary": (RunDir, "write_summary", 1, ENOSPC, True),
+}
+
+
+@pytest.mark.parametrize("name", WRITES)
+def test_a_full_disk_at_any_write_is_one_line_and_the_run_resumes_exactly(finished, tmp_path, capsys, monkeypatch, name):
+    owner, attribute, call, error, resumable = WRITES[name]
+    monkeypatch.setattr(owner, attribute, fails_at(call, error)(getattr(owner, attribute)))
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 2
+    line = one_line(capsys)
+    assert line.startswith("error: ") and ("No space left on device" in line or "not written" in line), line
+    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*orbax-checkpoint-tmp*"))
+    if not resumable:
+        assert line.endswith(f"; {out} removed (no checkpoint to resume)") and not out.exists(), line
+        return
+    assert line.endswith(f"; fix that, then continue with: python -m rpo_jax.train --resume {out}"), line
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(out) == without_timing(finished)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A tmpfs of 4 MiB mounted at tmp_path/disk (as root; skipped where mounting is refused)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)]).returncode:
+        pytest.skip("mounting a tmpfs needs root")
+    yield disk
+    subprocess.run(["umount", "-l", str(disk)], check=True)
+
+
+def test_a_real_full_disk_is_one_line_and_the_moved_run_resumes_exactly(finished, small_disk, tmp_path, capsys):
+    """The disk filled up with room for about one checkpoint and a half: the run stops at a
+    later checkpoint in one line; moved to a disk with room, it resumes to the uninterrupted run."""
+    checkpoint = sum(path.stat().st_size for path in (finished / "checkpoints" / str(UPDATES - 1)).rglob("*") if path.is_file())
+    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
+    (small_disk / "filler").write_bytes(b"\0" * (free - 2 * checkpoint - 64 * 1024))
+    out = small_disk / "run"
+    code = train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)])
+    line = one_line(capsys)
+    assert code == 2 and "No space left on device" in line and line.endswith(f"--resume {out}"), line
+    assert not list(out.rglob("*orbax-checkpoint-tmp*"))
+    moved = tmp_path / "moved"
+    shutil.copytree(out, moved)
+    assert train.main(["--resume", str(moved), "--quiet"]) == 0
+    assert (moved / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(moved) == without_timing(finished)
