@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -190,3 +191,24 @@ def test_a_real_full_disk_is_one_line_and_the_moved_run_resumes_exactly(finished
     assert train.main(["--resume", str(moved), "--quiet"]) == 0
     assert (moved / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
     assert without_timing(moved) == without_timing(finished)
+
+
+def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch):
+    """A real SIGTERM arriving while orbax writes the fourth checkpoint: the write is abandoned,
+    the run resumes from the third and ends as the uninterrupted run, bit for bit."""
+    save = ocp.CheckpointManager.save
+
+    def terminated_while_saving(self, *args, **kwargs):
+        if args[0] == 4:
+            os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode, inside orbax's write
+        return save(self, *args, **kwargs)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "save", terminated_while_saving)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 143
+    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    assert not (out / "checkpoints" / "4").exists()
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(out) == without_timing(finished)
