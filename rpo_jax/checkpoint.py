@@ -16,10 +16,12 @@ checksums existed restore unverified.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
 import math
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -138,13 +140,34 @@ class Checkpointer:
         the checksums of both, which `restore` checks."""
         state = _without_empty(state)
         checksums = {"state": _state_checksums(state), "record": _record_checksum(record)}
-        self.manager.save(
-            update,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(state), record=ocp.args.JsonSave({**record, CHECKSUMS: checksums})
-            ),
-        )
-        self.manager.wait_until_finished()
+        try:
+            # orbax's writer threads log every failed write with its traceback; the error raised here says it once.
+            with _quiet_absl(logging.CRITICAL):
+                self.manager.save(
+                    update,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardSave(state), record=ocp.args.JsonSave({**record, CHECKSUMS: checksums})
+                    ),
+                )
+                self.manager.wait_until_finished()
+        except Exception as error:  # orbax and tensorstore raise ValueError and plain Exceptions for failed writes
+            _ignore_callbacks_into_closed_loops()
+            raise self._write_failure(update, error) from None
+
+    def _write_failure(self, update: int, error: Exception) -> OSError:
+        """The OSError to report for a checkpoint that could not be written, after its partial
+        files are removed: orbax leaves them in a temporary directory that no resume reads but
+        that holds the space a full disk lacks."""
+        directory = Path(self.manager.directory)
+        if jax.process_index() == 0:
+            for partial in directory.glob(f"{update}.orbax-checkpoint-tmp*"):
+                shutil.rmtree(partial, ignore_errors=True)
+        where = str(directory / str(update))
+        if isinstance(error, OSError) and error.errno:
+            return OSError(error.errno, os.strerror(error.errno), error.filename or where)
+        if "No space left on device" in str(error):  # tensorstore's, in the text of its own exception
+            return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), where)
+        return OSError(errno.EIO, f"checkpoint at update {update} not written ({_first_line(error)})", where)
 
     def restore(self, abstract_state: Any, update: int | None = None) -> tuple[Any, dict[str, Any]]:
         """The checkpoint at `update` (default the latest) as (state, record). Refuses, before
@@ -232,14 +255,15 @@ class Checkpointer:
 
 
 @contextlib.contextmanager
-def _quiet_absl() -> Iterator[None]:
+def _quiet_absl(level: int = logging.ERROR) -> Iterator[None]:
+    """absl's logger (orbax's) shows only messages of `level` and above within the block."""
     logger = logging.getLogger("absl")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
+    previous = logger.level
+    logger.setLevel(level)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        logger.setLevel(previous)
 
 
 def _ignore_callbacks_into_closed_loops() -> None:

@@ -31,6 +31,16 @@ class Interrupted(Exception):
         self.terminated = terminated
 
 
+class WriteFailed(OSError):
+    """A run's file could not be written (a full disk, a file system gone read-only): the
+    OSError, with the run directory and whether a checkpoint there resumes the run (else the
+    directory was removed)."""
+
+    def __init__(self, error: OSError, out: object, resumable: bool) -> None:
+        super().__init__(error.errno, error.strerror or str(error), error.filename)
+        self.out, self.resumable = out, resumable
+
+
 def interrupt_failure(error: BaseException, after: str) -> int:
     """Prints how the run stopped ("interrupted" by Ctrl-C, "terminated" by SIGTERM) followed by
     `after` as one line; returns 128 + the signal's number, as a shell reports it: 130 or 143."""
@@ -63,11 +73,16 @@ def usage_failure(error: UsageError) -> int:
     return 2
 
 
-def os_failure(error: OSError) -> int:
+def os_failure(error: OSError, resume: str = "") -> int:
     """Prints a failure of the file system (full disk, read-only, permissions) as one line and
-    returns the exit code for bad input: the fix is the user's (another --out, free space)."""
+    returns the exit code for bad input: the fix is the user's (another --out, free space).
+    For a run's write (WriteFailed), the line ends with `resume` (what continues the run) where
+    a checkpoint does, else with the directory's removal."""
     where = f": {error.filename}" if error.filename else ""
-    print(f"error: {error.strerror or error}{where}", file=sys.stderr)
+    after = ""
+    if isinstance(error, WriteFailed):
+        after = f"; fix that, then {resume}" if error.resumable else f"; {error.out} removed (no checkpoint to resume)"
+    print(f"error: {error.strerror or error}{where}{after}", file=sys.stderr)
     return 2
 
 

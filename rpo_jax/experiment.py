@@ -370,7 +370,7 @@ def run_command(argv: Sequence[str] | None) -> int:
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:
-        return os_failure(error)
+        return os_failure(error, "the same command continues the experiment")
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:

@@ -11,8 +11,12 @@ from typing import Any
 def write_bytes(path: Path, data: bytes) -> None:
     """Writes through a temporary file and a rename, so a crash never leaves half a file."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk's half-written file: its space back, nothing left to mistake
+        raise
 
 
 def write_text(path: Path, text: str) -> None:

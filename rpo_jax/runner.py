@@ -35,7 +35,7 @@ from rpo_jax import devices, envs, ppo
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.devices import is_primary, make_placement
-from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError
+from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
 from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 from rpo_jax.scores import tail_mean
@@ -339,12 +339,14 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
             with _interruptible(plan.out), _out_of_memory_refused():
                 return train_locked(plan, env, grid, sinks, progress)
         except (Diverged, UsageError, OSError) as error:
-            if plan.resuming or plan.run_dir.has_checkpoint():
-                raise
-            shutil.rmtree(plan.out)
-            if existed:  # the user's own empty directory stays
-                plan.out.mkdir()
+            resumable = plan.resuming or plan.run_dir.has_checkpoint()
+            if not resumable:
+                shutil.rmtree(plan.out)
+                if existed:  # the user's own empty directory stays
+                    plan.out.mkdir()
             if isinstance(error, OSError):
+                raise WriteFailed(error, plan.out, resumable) from None
+            if resumable:
                 raise
             raise type(error)(f"{error}; {plan.out} removed (no checkpoint to resume)") from None
 

@@ -94,6 +94,9 @@ class TrainArgs:
     """processes that train together, each on its --devices; process 0 writes --out (see --coordinator)"""
     process_id: int | None = None
     """this process's index among --num-processes, from 0 (see --coordinator)"""
+    coordinator_timeout: int = 30  # well under JAX's 300 s, which ends in a C++ abort
+    """seconds the processes wait for each other to join, and for one that stopped answering before the others end
+    with an error; raise it on clusters whose processes start far apart"""
     distributed: bool = False
     """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
     quiet: bool = False
@@ -156,7 +159,7 @@ def one_line(message: str) -> str:
 TRACKING_FIELDS = ("track", "wandb_project", "wandb_entity", "wandb_mode", "wandb_group")
 # How the processes meet and what devices they make, not what the runs are: --resume takes any,
 # and checks the layout they make.
-PROCESS_FIELDS = ("coordinator", "num_processes", "process_id", "distributed", "cpu_devices")
+PROCESS_FIELDS = ("coordinator", "num_processes", "process_id", "coordinator_timeout", "distributed", "cpu_devices")
 
 
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
@@ -247,14 +250,14 @@ def run_command(argv: list[str]) -> int:
         from rpo_jax import devices  # JAX, first used here: the CPU split and the processes joined first
 
         devices.split_cpu(args.cpu_devices)
-        devices.join_processes(args.coordinator, args.num_processes, args.process_id, args.distributed)
+        devices.join_processes(args.coordinator, args.num_processes, args.process_id, args.distributed, args.coordinator_timeout)
         devices.check_cpu_split(args.cpu_devices)
         plan = devices.refused_together(lambda: make_plan(args, argv))
         summary = train_with_display(plan, args.quiet or not devices.is_primary(), args)
     except UsageError as error:
         return usage_failure(error)
     except OSError as error:
-        return os_failure(error)
+        return os_failure(error, f"continue with: {PROG} --resume {getattr(error, 'out', '')}")
     except Diverged as error:
         return diverged_failure(error)
     except Interrupted as interrupted:

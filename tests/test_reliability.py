@@ -478,7 +478,7 @@ def test_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(runner, "write_rows", full)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", "0"]) == 2
-    assert one_line(capsys) == f"error: No space left on device: {out / METRICS_FILE}"
+    assert one_line(capsys) == f"error: No space left on device: {out / METRICS_FILE}; {out} removed (no checkpoint to resume)"
 
 
 def test_rows_are_appended_whole_or_not_at_all(tmp_path):

@@ -1,0 +1,214 @@
+"""Failures around the processes and the disk: joining processes that never meet or name a port
+JAX cannot use, a peer that dies, a disk that fills up at each write, damaged checkpoints and a
+SIGTERM during a checkpoint's write. Each ends in one line and a known exit code, and leaves a
+run that resumes exactly where something resumable was written."""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import time
+
+import orbax.checkpoint as ocp
+import pytest
+from test_hosts import TINY as CARTPOLE, command, free_port, printed
+from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
+
+from rpo_jax import runner, train
+from rpo_jax.rundir import PARAMS_FILE, RunDir
+
+__all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
+
+# --------------------------------------------------------------------------------------------
+# Joining processes
+
+
+def layout(port: int | str, process: int, *more: str) -> list[str]:
+    return ["--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(process), *more]
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (layout(99999, 0), "--coordinator localhost:99999: the port must be in 1..65535, got 99999"),
+        (layout(0, 1), "--coordinator localhost:0: the port must be in 1..65535, got 0"),
+        (["--coordinator", "localhost:x", *layout(1, 0)[2:]], "--coordinator must be HOST:PORT"),
+        (["--coordinator", ":1234", *layout(1, 0)[2:]], "--coordinator must be HOST:PORT"),
+        (layout(1234, 0, "--coordinator-timeout", "0"), "--coordinator-timeout must be >= 1 second, got 0"),
+    ],
+    ids=["port 99999", "port 0", "port not a number", "no host", "timeout 0"],
+)
+def test_a_coordinator_jax_cannot_use_is_refused_before_joining(tmp_path, capsys, flags, message):
+    # Refused before JAX is asked to join (which, in this process, it then never is).
+    out = tmp_path / "run"
+    assert train.main([*CARTPOLE, *flags, "--out", str(out)]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert len(lines) == 1 and message in lines[0], lines
+    assert not out.exists()
+
+
+def test_process_0_on_a_port_in_use_is_refused_in_one_line(tmp_path, capsys):
+    with socket.socket() as taken:
+        taken.bind(("", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert train.main([*CARTPOLE, *layout(port, 0), "--out", str(tmp_path / "run")]) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert lines == [f"error: --coordinator localhost:{port}: process 0 cannot listen on port {port} here "
+                     "(Address already in use); choose a free port"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "process, why",
+    [
+        (1, "nothing answered at the coordinator localhost:{port} (process 0, started with the same --coordinator)"),
+        (0, "not all 2 processes joined the coordinator localhost:{port}"),
+    ],
+    ids=["no process 0", "process 0 alone"],
+)
+def test_processes_that_never_meet_end_in_one_line_after_the_timeout(tmp_path, process, why):
+    """Where JAX, after 300 s, aborts with a C++ stack dump: here one line and exit code 2."""
+    port = free_port()
+    started = time.monotonic()
+    process = command([*CARTPOLE, *layout(port, process, "--coordinator-timeout", "2"), "--out", str(tmp_path / "run")])
+    out, err = process.communicate(timeout=120)
+    result = {"code": process.returncode, "stdout": out, "stderr": err}
+    assert result["code"] == 2 and time.monotonic() - started < 60, result
+    assert printed(result) == [
+        f"error: could not join the run's processes: {why.format(port=port)} within 2 s; start every --process-id "
+        "with the same --coordinator and --num-processes, or wait longer with --coordinator-timeout SECONDS"
+    ]
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow  # two processes compile and train for about 30 s
+def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
+    """Process 1 killed mid-run: process 0 ends within --coordinator-timeout (JAX's heartbeat),
+    not after JAX's default 100 s, its checkpoints kept."""
+    port, out = free_port(), tmp_path / "run"
+    flags = [*CARTPOLE, "--total-timesteps", str(8 * 8 * 4000), "--checkpoint-every", str(8 * 8 * 100)]
+    flags += ["--coordinator-timeout", "5", "--out", str(out)]
+    processes = [command([*flags, *layout(port, index)]) for index in (0, 1)]
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "checkpoints").is_dir() or not any(p.name.isdigit() for p in (out / "checkpoints").iterdir()):
+            assert time.monotonic() < deadline and processes[0].poll() is None
+            time.sleep(0.5)
+        processes[1].kill()
+        killed = time.monotonic()
+        processes[0].wait(timeout=60)
+        assert processes[0].returncode != 0 and time.monotonic() - killed < 5 + 10
+    finally:
+        for process in processes:
+            process.kill()
+            process.communicate()
+    assert any(p.name.isdigit() for p in (out / "checkpoints").iterdir())
+
+
+# --------------------------------------------------------------------------------------------
+# A full disk at each write of a run
+
+
+def fails_at(call: int, error: Exception):
+    """A stand-in that raises `error` at its `call`-th call and does `real`'s work before it."""
+
+    def wrap(real):
+        calls = []
+
+        def failing(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == call:
+                raise error
+            return real(*args, **kwargs)
+
+        return failing
+
+    return wrap
+
+
+ENOSPC = OSError(errno.ENOSPC, "No space left on device")
+# What tensorstore raises through orbax for a full disk: no OSError, the cause in its text.
+ORBAX_FULL = ValueError('RESOURCE_EXHAUSTED: Error writing "w/0" in OCDBT database: No space left on device')
+WRITES = {
+    # name: (object, attribute, failing call, error, resumable)
+    "metrics, first row": (runner, "write_rows", 1, ENOSPC, False),
+    "metrics, after checkpoints": (runner, "write_rows", 5, ENOSPC, True),
+    "first checkpoint": (ocp.CheckpointManager, "save", 1, ORBAX_FULL, False),
+    "later checkpoint": (ocp.CheckpointManager, "save", 4, ORBAX_FULL, True),
+    "checkpoint, plain Exception": (ocp.CheckpointManager, "save", 4, Exception("tensorstore: Failed writing"), True),
+    "params": (RunDir, "write_params", 1, ENOSPC, True),
+    "summary": (RunDir, "write_summary", 1, ENOSPC, True),
+}
+
+
+@pytest.mark.parametrize("name", WRITES)
+def test_a_full_disk_at_any_write_is_one_line_and_the_run_resumes_exactly(finished, tmp_path, capsys, monkeypatch, name):
+    owner, attribute, call, error, resumable = WRITES[name]
+    monkeypatch.setattr(owner, attribute, fails_at(call, error)(getattr(owner, attribute)))
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 2
+    line = one_line(capsys)
+    assert line.startswith("error: ") and ("No space left on device" in line or "not written" in line), line
+    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*orbax-checkpoint-tmp*"))
+    if not resumable:
+        assert line.endswith(f"; {out} removed (no checkpoint to resume)") and not out.exists(), line
+        return
+    assert line.endswith(f"; fix that, then continue with: python -m rpo_jax.train --resume {out}"), line
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(out) == without_timing(finished)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A tmpfs of 4 MiB mounted at tmp_path/disk (as root; skipped where mounting is refused)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)]).returncode:
+        pytest.skip("mounting a tmpfs needs root")
+    yield disk
+    subprocess.run(["umount", "-l", str(disk)], check=True)
+
+
+def test_a_real_full_disk_is_one_line_and_the_moved_run_resumes_exactly(finished, small_disk, tmp_path, capsys):
+    """The disk filled up with room for about one checkpoint and a half: the run stops at a
+    later checkpoint in one line; moved to a disk with room, it resumes to the uninterrupted run."""
+    checkpoint = sum(path.stat().st_size for path in (finished / "checkpoints" / str(UPDATES - 1)).rglob("*") if path.is_file())
+    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
+    (small_disk / "filler").write_bytes(b"\0" * (free - 2 * checkpoint - 64 * 1024))
+    out = small_disk / "run"
+    code = train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)])
+    line = one_line(capsys)
+    assert code == 2 and "No space left on device" in line and line.endswith(f"--resume {out}"), line
+    assert not list(out.rglob("*orbax-checkpoint-tmp*"))
+    moved = tmp_path / "moved"
+    shutil.copytree(out, moved)
+    assert train.main(["--resume", str(moved), "--quiet"]) == 0
+    assert (moved / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(moved) == without_timing(finished)
+
+
+def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch):
+    """A real SIGTERM arriving while orbax writes the fourth checkpoint: the write is abandoned,
+    the run resumes from the third and ends as the uninterrupted run, bit for bit."""
+    save = ocp.CheckpointManager.save
+
+    def terminated_while_saving(self, *args, **kwargs):
+        if args[0] == 4:
+            os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode, inside orbax's write
+        return save(self, *args, **kwargs)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "save", terminated_while_saving)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 143
+    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    assert not (out / "checkpoints" / "4").exists()
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(out) == without_timing(finished)
