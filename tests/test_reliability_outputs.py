@@ -5,19 +5,28 @@ that say which distribution to sample."""
 
 from __future__ import annotations
 
+import errno
+import json
+import os
 import shutil
 from pathlib import Path
 
+import jax
+import numpy as np
 import pytest
 import test_reliability
 from test_reliability import TINY_FLAGS, one_line
 
-from rpo_jax import evaluate, train
+from scipy import stats
+
+from rpo_jax import evaluate, export, load_policy, train
 from rpo_jax.envs import __main__ as envs_main
 from rpo_jax.rundir import CONFIG_FILE
 
 # The point mass registered as test/point_mass, and its tiny runs, finished and unfinished.
 test_envs, finished, unfinished = test_reliability.test_envs, test_reliability.finished, test_reliability.unfinished
+
+SAMPLES = 20_000  # draws per distribution compared
 
 FACTORIES = """
 import sys
@@ -152,3 +161,112 @@ def test_evaluate_imports_a_module_outside_the_run_directory(finished, tmp_path,
     monkeypatch.syspath_prepend(str(tmp_path / "elsewhere"))
     assert evaluate.main([str(run), "--episodes", "1"]) == 0
     assert marker.exists() and f"{name}:make run 0" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------------------------
+# export: the distribution recorded and sampled as the library samples it; output paths
+
+
+def with_distribution(finished: Path, tmp_path: Path, dist: str) -> Path:
+    """A copy of `finished` made a `dist` policy, its action bounds wide enough that no sample is clipped."""
+    run = tmp_path / f"run-{dist}"
+    shutil.copytree(finished, run)
+    record = json.loads((run / CONFIG_FILE).read_text())
+    record["config"]["dist"] = dist
+    record["env_spec"].update(action_low=[-1e6], action_high=[1e6])
+    (run / CONFIG_FILE).write_text(json.dumps(record))
+    return run
+
+
+@pytest.mark.parametrize("dist", ["gaussian", "laplace", "gumbel"])
+def test_exports_record_the_distribution_and_sample_as_the_library(finished, tmp_path, dist):
+    import onnx
+
+    run = with_distribution(finished, tmp_path, dist)
+    npz, onnx_path = tmp_path / "policy.npz", tmp_path / "policy.onnx"
+    assert export.main([str(run), "--npz", str(npz), "--onnx", str(onnx_path)]) == 0
+    arrays = dict(np.load(npz))
+    assert str(arrays["distribution"]) == dist
+    metadata = {prop.key: prop.value for prop in onnx.load(onnx_path).metadata_props}
+    assert metadata["distribution"] == dist
+    np.testing.assert_allclose(json.loads(metadata["log_std"]), arrays["log_std"], rtol=1e-6)
+    # Many draws at one observation: the exported sampler's against the library's policy.
+    obs = np.tile(np.array([[0.3, -0.2]], np.float32), (SAMPLES, 1))
+    exported = export.sample(arrays, obs, np.random.default_rng(0))[:, 0]
+    library = np.asarray(load_policy(run)(obs, jax.random.PRNGKey(0)))[:, 0]
+    assert stats.ks_2samp(exported, library).pvalue > 1e-3
+    # The test tells the families apart: a sampler of another family is refused.
+    for other in set(export.SAMPLERS) - {dist}:
+        wrong = export.sample({**arrays, "distribution": np.str_(other)}, obs, np.random.default_rng(0))[:, 0]
+        assert stats.ks_2samp(wrong, library).pvalue < 1e-6, other
+
+
+def test_the_sampled_action_is_clipped_and_the_deterministic_one_is_the_location(finished, tmp_path):
+    npz = tmp_path / "policy.npz"
+    assert export.main([str(finished), "--npz", str(npz)]) == 0
+    arrays = dict(np.load(npz))
+    obs = np.random.default_rng(1).normal(size=(4096, 2)).astype(np.float32)
+    drawn = export.sample(arrays, obs, np.random.default_rng(2))
+    assert drawn.min() >= -1 and drawn.max() <= 1 and np.unique(drawn).size > 100
+    np.testing.assert_array_equal(export.forward(arrays, obs), np.clip(export.location(arrays, obs), -1, 1))
+
+
+def read_only(directory: Path, monkeypatch) -> None:
+    """Makes `directory` unwritable: by its mode, or for root (whom modes do not stop) as a
+    read-only file system reports itself to os.access."""
+    directory.chmod(0o500)
+    if os.geteuid() == 0:
+        access = os.access
+        monkeypatch.setattr(os, "access", lambda path, mode: access(path, mode) and Path(path) != directory)
+
+
+@pytest.mark.parametrize(
+    "outputs, message",
+    [
+        (["--npz", "missing/p.npz"], "error: --npz missing/p.npz: the directory {tmp}/missing does not exist"),
+        (["--onnx", "ro/p.onnx", "--npz", "p.npz"], "error: --onnx ro/p.onnx: the directory {tmp}/ro is not writable"),
+        (["--onnx", "p.x", "--npz", "p.x"], "error: --onnx and --npz are the same file p.x; give each its own"),
+        (["--onnx", "p.x", "--npz", "./p.x"], "error: --onnx and --npz are the same file p.x; give each its own"),
+        (["--npz", "dangling.npz"], "error: --npz dangling.npz already exists; choose a new file"),
+        ([], "error: give --onnx OUT.onnx, --npz OUT.npz or both"),
+    ],
+)  # fmt: skip
+def test_export_refuses_outputs_it_cannot_write_before_any_work(finished, tmp_path, capsys, monkeypatch, outputs, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ro").mkdir()
+    read_only(tmp_path / "ro", monkeypatch)
+    (tmp_path / "dangling.npz").symlink_to(tmp_path / "nowhere")
+    monkeypatch.setattr(export, "policy_arrays", lambda *args: pytest.fail("the policy was read"))
+    assert export.main([str(finished), *outputs]) == 2
+    assert one_line(capsys).startswith(message.format(tmp=tmp_path))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["dangling.npz", "ro"]
+
+
+def test_export_writes_both_files_or_none(finished, tmp_path, capsys, monkeypatch):
+    onnx_path, npz = tmp_path / "p.onnx", tmp_path / "p.npz"
+    arrays = export.policy_arrays
+
+    def npz_appears_meanwhile(*args):  # another process takes the name while the policy is read
+        npz.write_bytes(b"theirs")
+        return arrays(*args)
+
+    monkeypatch.setattr(export, "policy_arrays", npz_appears_meanwhile)
+    assert export.main([str(finished), "--onnx", str(onnx_path), "--npz", str(npz)]) == 2
+    assert one_line(capsys) == f"error: {npz} appeared while exporting; nothing was written, choose a new file"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["p.npz"] and npz.read_bytes() == b"theirs"
+
+
+def test_export_into_a_full_disk_is_one_line_and_leaves_nothing(finished, tmp_path, capsys, monkeypatch):
+    onnx_path, npz = tmp_path / "p.onnx", tmp_path / "p.npz"
+    write_bytes = Path.write_bytes
+
+    def full_at_npz(path, data):  # the disk fills up at the second file
+        if path.name.startswith(".p.npz"):
+            write_bytes(path, data[:10])
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return write_bytes(path, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full_at_npz)
+    assert export.main([str(finished), "--onnx", str(onnx_path), "--npz", str(npz)]) == 2
+    assert one_line(capsys) == f"error: No space left on device: {npz}"
+    assert list(tmp_path.iterdir()) == []
