@@ -19,8 +19,9 @@ from test_reliability import TINY_FLAGS, one_line
 
 from scipy import stats
 
-from rpo_jax import evaluate, export, load_policy, train
+from rpo_jax import evaluate, export, load_policy, runner, tracking, train
 from rpo_jax.envs import __main__ as envs_main
+from rpo_jax.errors import UsageError
 from rpo_jax.rundir import CONFIG_FILE
 
 # The point mass registered as test/point_mass, and its tiny runs, finished and unfinished.
@@ -270,3 +271,96 @@ def test_export_into_a_full_disk_is_one_line_and_leaves_nothing(finished, tmp_pa
     assert export.main([str(finished), "--onnx", str(onnx_path), "--npz", str(npz)]) == 2
     assert one_line(capsys) == f"error: No space left on device: {npz}"
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# W&B: credentials checked before any work; its files in one place
+
+
+@pytest.fixture
+def no_wandb_credentials(tmp_path, monkeypatch):
+    """No W&B key anywhere W&B looks: the variables, .netrc and its settings under HOME."""
+    for name in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_DIR", "WANDB_IDENTITY_TOKEN_FILE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("NETRC", str(tmp_path / "home" / ".netrc"))
+    monkeypatch.setenv("WANDB_CONFIG_DIR", str(tmp_path / "home" / "wandb"))
+
+
+def test_wandb_online_without_credentials_is_refused_before_anything(tmp_path, capsys, monkeypatch, no_wandb_credentials):
+    monkeypatch.setattr(runner, "train", lambda *args, **kwargs: pytest.fail("training began"))
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--track", "wandb", "--out", str(out)]) == 2
+    assert one_line(capsys) == (
+        "error: --track wandb: no W&B credentials; run `wandb login` or set WANDB_API_KEY, "
+        "or log offline with --wandb-mode offline (wandb sync uploads later)"
+    )
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "mode, variable, key, refused",
+    [(None, None, None, True), ("online", None, None, True), (None, "offline", None, False), ("offline", None, None, False),
+     (None, "disabled", None, False), (None, None, "0123456789" * 4, False)],
+)  # fmt: skip
+def test_wandb_credentials_are_needed_online_only(monkeypatch, no_wandb_credentials, mode, variable, key, refused):
+    import wandb
+
+    if variable:
+        monkeypatch.setenv("WANDB_MODE", variable)
+    if key:
+        monkeypatch.setenv("WANDB_API_KEY", key)
+    monkeypatch.setattr(wandb.sdk.lib.wbauth.AuthApiKey, "verify", lambda self: pytest.fail("verified online"))
+    if refused:
+        with pytest.raises(UsageError, match="no W&B credentials"):
+            tracking.check_login(wandb, mode)
+    else:
+        tracking.check_login(wandb, mode)
+
+
+@pytest.mark.parametrize("wandb_dir", [None, "elsewhere"])
+def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_credentials, wandb_dir):
+    import wandb
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    if wandb_dir:
+        monkeypatch.setenv("WANDB_DIR", str(tmp_path / wandb_dir))
+        (tmp_path / wandb_dir).mkdir()
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--track", "wandb", "--out", str(out)]) == 0
+    wandb.teardown()  # W&B's service has written its files
+    root = tmp_path / wandb_dir / "wandb" if wandb_dir else out / "wandb"
+    assert [path.relative_to(root).parts[0].startswith("offline-run-") for path in root.rglob("*.wandb")] == [True]
+    assert not (root / "wandb").exists() and (out / "wandb").exists() == (wandb_dir is None)
+
+
+# --------------------------------------------------------------------------------------------
+# Output paths of train and evaluate
+
+
+@pytest.mark.parametrize("out", ["dangling", "dangling/run"])
+def test_an_out_through_a_dangling_symlink_is_refused_naming_it(tmp_path, capsys, out):
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    assert train.main([*TINY_FLAGS, "--out", str(tmp_path / out)]) == 2
+    link, target = tmp_path / "dangling", tmp_path / "nowhere"
+    assert one_line(capsys) == f"error: --out {tmp_path / out}: {link} is a symbolic link to {target}, which does not exist"
+    assert not (tmp_path / "nowhere").exists()
+
+
+@pytest.mark.parametrize(
+    "video, message",
+    [
+        ("ro/x.mp4", "error: --video ro/x.mp4: the directory {tmp}/ro is not writable (read-only file system or no permission)"),
+        ("dangling.mp4", "error: --video dangling.mp4 already exists; choose a new file"),
+        ("x.mp4", "error: --video: point_mass is not a MuJoCo-based environment that rpo_jax can draw"),
+    ],
+)  # fmt: skip
+def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp_path, capsys, monkeypatch, video, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ro").mkdir()
+    read_only(tmp_path / "ro", monkeypatch)
+    (tmp_path / "dangling.mp4").symlink_to(tmp_path / "nowhere")
+    monkeypatch.setattr(evaluate, "episode_returns", lambda *args: pytest.fail("the evaluation ran"))
+    assert evaluate.main([str(finished), "--video", video]) == 2
+    assert one_line(capsys) == message.format(tmp=tmp_path)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["dangling.mp4", "ro"]
