@@ -16,6 +16,7 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 from __future__ import annotations
 
 import copy
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -54,15 +55,9 @@ def record_video(
     env: envs.Env, policy: Policy, path: Path, key: jax.Array, deterministic: bool,
     width: int = 640, height: int = 480,
 ) -> tuple[float, int]:  # fmt: skip
-    """Renders one episode to `path` (MP4); returns its return and length."""
-    from rpo_jax import envs
+    """Renders one episode to `path` (MP4); returns its return and length. `check_video` first."""
+    import imageio.v2 as imageio
 
-    try:
-        import imageio.v2 as imageio
-    except ImportError:
-        raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
-    if not isinstance(env, envs.Renderable):
-        raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
     positions, total = episode_positions(env, policy, key, deterministic)
     frames = render(env, positions, width, height)
     with warnings.catch_warnings():
@@ -72,6 +67,31 @@ def record_video(
         warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
         imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
     return total, len(positions) - 1
+
+
+def check_video_path(path: Path) -> None:
+    """Refuses, before any work, a --video file that cannot be written: one that exists, or whose
+    directory is missing or not writable (ffmpeg would fail only after the evaluation, in its own words)."""
+    directory = path.absolute().parent
+    if path.exists() or path.is_symlink():
+        raise UsageError(f"--video {path} already exists; choose a new file")
+    if not directory.is_dir():
+        raise UsageError(f"--video {path}: the directory {directory} does not exist")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise UsageError(f"--video {path}: the directory {directory} is not writable (read-only file system or no permission)")
+
+
+def check_video(env: envs.Env) -> None:
+    """Refuses, before the evaluation runs, --video for an environment that cannot be drawn or
+    without the extra that writes MP4."""
+    from rpo_jax import envs
+
+    if not isinstance(env, envs.Renderable):
+        raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
+    try:
+        import imageio.v2  # noqa: F401
+    except ImportError:
+        raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
 
 
 def episode_positions(env: envs.Env, policy: Policy, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
@@ -142,10 +162,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         run_dir = RunDir(args.run_dir)
         if not run_dir.has_params():
             raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
-        if args.video and args.video.exists():
-            raise UsageError(f"--video {args.video} already exists; choose a new file")
-        if args.video and not args.video.absolute().parent.is_dir():
-            raise UsageError(f"--video {args.video}: the directory {args.video.absolute().parent} does not exist")
+        if args.video:
+            check_video_path(args.video)
         if not 0 <= args.seed < 2**32:
             raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
         saved = run_dir.read_config()
@@ -154,12 +172,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         import jax
 
         from rpo_jax import envs
+        from rpo_jax.envs.registry import check_import_outside
         from rpo_jax.policy import load_policy
 
+        check_import_outside(saved["env"], args.run_dir)
         try:
             env = envs.make_env(saved["env"])
         except UsageError as error:
             raise UsageError(f"{args.run_dir}: its environment cannot be rebuilt: {error}") from None
+        if args.video:
+            check_video(env)
         policy = load_policy(args.run_dir, args.run)
         key = jax.random.PRNGKey(args.seed)
         returns = episode_returns(env, policy, args.episodes, key, args.deterministic)

@@ -9,22 +9,41 @@ environment's bounds).
 
 The `.npz` holds float32 arrays `obs_mean`, `obs_std`, `obs_clip`, `kernel_0`, `bias_0`, ...,
 `kernel_N`, `bias_N` (N + 1 dense layers, the last one the output), `action_low`, `action_high`,
-`log_std` (the state-independent log-scale, for sampling) and the string `activation`
-(tanh, relu, elu or silu). The forward pass, which `forward` implements:
+`log_std` (the state-independent log of the distribution's scale), the string `activation`
+(tanh, relu, elu or silu) and the string `distribution` (gaussian, laplace or gumbel). The
+forward pass, which `forward` implements:
 
     x = clip((obs - obs_mean) / obs_std, -obs_clip, obs_clip)
     x = activation(x @ kernel_i + bias_i)          for i in 0 .. N-1
-    action = clip(x @ kernel_N + bias_N, action_low, action_high)
+    location = x @ kernel_N + bias_N
+    action = clip(location, action_low, action_high)
+
+The stochastic policy, which `sample` implements, draws each action dimension independently
+from `distribution` with that location and the scale exp(log_std), then clips it the same way:
+
+    gaussian: location + scale * normal()      scale is the standard deviation (numpy: rng.normal(location, scale))
+    laplace:  location + scale * laplace()     scale b, the standard deviation sqrt(2) b (rng.laplace(location, scale))
+    gumbel:   location + scale * gumbel()      the max-Gumbel, mean location + 0.5772 scale (rng.gumbel(location, scale))
+
+so `log_std` is a standard deviation's log for the Gaussian only. The deterministic action is the
+location for each: the Gaussian's and Laplace's mean, the Gumbel's mode.
 
 A run trained without observation normalisation has obs_mean 0, obs_std 1 and obs_clip inf.
 `obs_std` is sqrt(var + 1e-8) of the run's running statistics, as training divides by it.
 
 The ONNX model (opset 17) computes the same with input `obs` [batch, obs_size] float32 and
-output `action` [batch, action_size]; its check needs the `onnx` extra (onnx, onnxruntime).
+output `action` [batch, action_size]; its metadata (`metadata_props`) hold `distribution` and
+`log_std` (a JSON list) for sampling as above. Its check needs the `onnx` extra (onnx, onnxruntime).
+
+Both files are written whole or not at all: through temporary files, published only when both
+are written, never over an existing file.
 """
 
 from __future__ import annotations
 
+import io
+import json
+import os
 import sys
 from pathlib import Path
 from typing import Any, Sequence
@@ -32,7 +51,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.errors import UsageError, os_failure, usage_failure
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 ACTIVATIONS = {
@@ -40,6 +59,12 @@ ACTIVATIONS = {
     "relu": lambda x: np.maximum(x, 0),
     "elu": lambda x: np.where(x > 0, x, np.expm1(np.minimum(x, 0))),
     "silu": lambda x: x / (1 + np.exp(-x)),
+}
+# How each distribution's sample is drawn with NumPy: location and scale in, same shape out.
+SAMPLERS = {
+    "gaussian": lambda rng, location, scale: rng.normal(location, scale),
+    "laplace": lambda rng, location, scale: rng.laplace(location, scale),
+    "gumbel": lambda rng, location, scale: rng.gumbel(location, scale),
 }
 OPSET = 17
 
@@ -62,18 +87,31 @@ def policy_arrays(run_dir: Path, run: int = 0) -> dict[str, np.ndarray]:
         **arrays,
         "action_low": np.asarray(spec["action_low"], np.float32), "action_high": np.asarray(spec["action_high"], np.float32),
         "log_std": np.asarray(actor_params["params"]["log_std"], np.float32), "activation": np.str_(config.activation),
+        "distribution": np.str_(config.dist),
     }  # fmt: skip
 
 
 def forward(arrays: Any, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for raw observations [..., obs_size] from the `.npz`'s arrays."""
+    return np.clip(location(arrays, obs), arrays["action_low"], arrays["action_high"])
+
+
+def sample(arrays: Any, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A stochastic action for raw observations [..., obs_size], as the policy draws it: from the
+    `.npz`'s `distribution` at the location with scale exp(log_std), clipped to the bounds."""
+    scale = np.exp(np.asarray(arrays["log_std"], np.float64))
+    draw = SAMPLERS[str(arrays["distribution"])](rng, location(arrays, obs), scale)
+    return np.clip(np.asarray(draw, np.float32), arrays["action_low"], arrays["action_high"])
+
+
+def location(arrays: Any, obs: np.ndarray) -> np.ndarray:
+    """The policy's location (before clipping) for raw observations [..., obs_size]."""
     layers = sum(1 for name in arrays if name.startswith("kernel_"))
     activation = ACTIVATIONS[str(arrays["activation"])]
     x = np.clip((np.asarray(obs, np.float32) - arrays["obs_mean"]) / arrays["obs_std"], -arrays["obs_clip"], arrays["obs_clip"])
     for i in range(layers - 1):
         x = activation(x @ arrays[f"kernel_{i}"] + arrays[f"bias_{i}"])
-    x = x @ arrays[f"kernel_{layers - 1}"] + arrays[f"bias_{layers - 1}"]
-    return np.clip(x, arrays["action_low"], arrays["action_high"])
+    return x @ arrays[f"kernel_{layers - 1}"] + arrays[f"bias_{layers - 1}"]
 
 
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
@@ -81,7 +119,7 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     from onnx import TensorProto, helper, numpy_helper
 
     layers = sum(1 for name in arrays if name.startswith("kernel_"))
-    constants = {name: value for name, value in arrays.items() if name not in ("activation", "log_std")}
+    constants = {name: value for name, value in arrays.items() if name not in ("activation", "log_std", "distribution")}
     nodes = [
         helper.make_node("Sub", ["obs", "obs_mean"], ["centred"]),
         helper.make_node("Div", ["centred", "obs_std"], ["scaled"]),
@@ -108,7 +146,10 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         initializer=[numpy_helper.from_array(np.asarray(value, np.float32), name) for name, value in constants.items()],
     )  # fmt: skip
     # IR version 9 with opset 17: what onnxruntime releases since 1.15 load.
-    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], ir_version=9, producer_name="rpo_jax")
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], ir_version=9, producer_name="rpo_jax")
+    sampling = {"distribution": str(arrays["distribution"]), "log_std": json.dumps(np.asarray(arrays["log_std"]).tolist())}
+    helper.set_model_props(model, sampling)
+    return model
 
 
 def activation_nodes(activation: str, x: str, out: str) -> list[Any]:
@@ -135,29 +176,80 @@ def main(argv: Sequence[str] | None = None) -> int:
         run_dir = RunDir(args.run_dir)
         if not run_dir.has_params():
             raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
-        if not (args.onnx or args.npz):
-            raise UsageError("give --onnx OUT.onnx, --npz OUT.npz or both")
-        for path in filter(None, (args.onnx, args.npz)):
-            if path.exists():
-                raise UsageError(f"{path} already exists; choose a new file")
+        outputs = {"--onnx": args.onnx, "--npz": args.npz}
+        check_outputs({flag: path for flag, path in outputs.items() if path is not None})
         runs = len(run_dir.read_config()["runs"])
         if not 0 <= args.run < runs:
             raise UsageError(f"--run must be in [0, {runs}), got {args.run}")
         arrays = policy_arrays(args.run_dir, args.run)
+        contents = {}
         if args.onnx:
-            try:
-                import onnx
-            except ImportError:
-                raise UsageError("--onnx needs the onnx extra: pip install -e '.[onnx]'") from None
-            onnx.save(onnx_model(arrays), args.onnx)
-            print(f"onnx: {args.onnx}")
+            contents[args.onnx] = onnx_bytes(arrays)
         if args.npz:
-            with open(args.npz, "xb") as file:  # never over a file that appeared meanwhile
-                np.savez(file, **arrays)
-            print(f"npz: {args.npz}")
+            npz = io.BytesIO()
+            np.savez(npz, **arrays)
+            contents[args.npz] = npz.getvalue()
+        write_new_files(contents)
+        for flag, path in outputs.items():
+            if path is not None:
+                print(f"{flag[2:]}: {path}")
     except UsageError as error:
         return usage_failure(error)
+    except OSError as error:
+        return os_failure(error)
     return 0
+
+
+def check_outputs(outputs: dict[str, Path]) -> None:
+    """Refuses, before any work, output files that cannot be written new: none given, one path
+    given twice, an existing file, a missing or unwritable directory."""
+    if not outputs:
+        raise UsageError("give --onnx OUT.onnx, --npz OUT.npz or both")
+    if len({path.absolute() for path in outputs.values()}) < len(outputs):
+        raise UsageError(f"--onnx and --npz are the same file {outputs['--onnx']}; give each its own")
+    for flag, path in outputs.items():
+        directory = path.absolute().parent
+        if path.exists() or path.is_symlink():
+            raise UsageError(f"{flag} {path} already exists; choose a new file")
+        if not directory.is_dir():
+            raise UsageError(f"{flag} {path}: the directory {directory} does not exist")
+        if not os.access(directory, os.W_OK | os.X_OK):
+            raise UsageError(f"{flag} {path}: the directory {directory} is not writable (read-only file system or no permission)")
+
+
+def onnx_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    try:
+        import onnx  # noqa: F401
+    except ImportError:
+        raise UsageError("--onnx needs the onnx extra: pip install -e '.[onnx]'") from None
+    return onnx_model(arrays).SerializeToString()
+
+
+def write_new_files(contents: dict[Path, bytes]) -> None:
+    """Writes every file or none: each to a temporary file beside it, then all linked into place,
+    never over a file that appeared meanwhile (UsageError; the ones already placed removed). A
+    failed write (a full disk) is an OSError naming the file it was for."""
+    temporary = {path: path.with_name(f".{path.name}.{os.getpid()}.tmp") for path in contents}
+    placed: list[Path] = []
+    try:
+        for path, data in contents.items():
+            try:
+                temporary[path].write_bytes(data)
+            except OSError as error:
+                raise OSError(error.errno, error.strerror, str(path)) from None
+        for path in contents:
+            try:
+                os.link(temporary[path], path)  # unlike a rename, fails where the file exists
+            except FileExistsError:
+                raise UsageError(f"{path} appeared while exporting; nothing was written, choose a new file") from None
+            placed.append(path)
+    except BaseException:
+        for path in placed:
+            path.unlink()
+        raise
+    finally:
+        for tmp in temporary.values():
+            tmp.unlink(missing_ok=True)
 
 
 if __name__ == "__main__":

@@ -33,7 +33,6 @@ PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
 LOCK_FILE = ".lock"
-WANDB_DIR = "wandb"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,10 +46,6 @@ class RunDir:
     @property
     def tensorboard(self) -> Path:
         return self.path / TENSORBOARD_DIR
-
-    @property
-    def wandb(self) -> Path:
-        return self.path / WANDB_DIR
 
     def is_new(self) -> bool:
         """Nothing there yet, or an empty directory (but for the lock file of a writer that stopped)."""

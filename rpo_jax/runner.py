@@ -165,10 +165,12 @@ def check_seeds(seed: int, num_seeds: int) -> None:
 
 
 def check_writable(out: Path) -> None:
-    """Refuses an --out that cannot be created: under a file, or in a directory this process
-    cannot write (a read-only file system)."""
+    """Refuses an --out that cannot be created: under a file or a dangling symbolic link, or in a
+    directory this process cannot write (a read-only file system)."""
     ancestor = out.absolute()
     while not ancestor.exists():
+        if ancestor.is_symlink():  # a dangling link: mkdir would fail with "File exists"
+            raise UsageError(f"--out {out}: {ancestor} is a symbolic link to {os.readlink(ancestor)}, which does not exist")
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise UsageError(f"--out {out}: {ancestor} is a file, not a directory")

@@ -8,13 +8,15 @@ POINT the swept values, so W&B's grouped view shows each point's mean over seeds
 logged at `env_steps`: the trainer's metrics under `train/`, `eval/episode_return` where the
 row has an evaluation and `train/sps`.
 
-Offline (`mode="offline"`, or the WANDB_MODE variable) W&B writes the runs under the run
-directory's `wandb/` for `wandb sync` to upload later.
+W&B's files go to the run directory's `wandb/` (offline runs for `wandb sync` to upload later),
+or under the directory the WANDB_DIR variable names. Online, W&B's credentials (`wandb login`,
+WANDB_API_KEY or .netrc) are checked before anything is compiled or written, without the network.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 from typing import Any
 
 from rpo_jax.errors import UsageError
@@ -33,19 +35,21 @@ class WandbSink:
         self.wandb = wandb
         self.project, self.entity, self.mode, self.group = project, entity, mode, group
         self.runs: list[Any] = []
+        check_login(wandb, mode)
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
         """Starts (or, for a resumed run, continues under the same ids) one W&B run per run.
         The kept rows are not sent again: the process that logged them sent them."""
         record = run_dir.read_config()
         group = self.group or run_dir.path.name
-        run_dir.wandb.mkdir(parents=True, exist_ok=True)
+        # W&B makes its `wandb/` in `dir`; WANDB_DIR, where set, is the user's choice of that directory.
+        directory = None if os.environ.get("WANDB_DIR") else str(run_dir.path)
         # W&B ids from the run directory's absolute path: unique per run, the same on resume.
         prefix = hashlib.sha256(str(run_dir.path.resolve()).encode()).hexdigest()[:12]
         for run, label in zip(record["runs"], labels):
             self.runs.append(
                 self.wandb.init(
-                    project=self.project, entity=self.entity, mode=self.mode, dir=str(run_dir.wandb),
+                    project=self.project, entity=self.entity, mode=self.mode, dir=directory,
                     id=f"{prefix}-{run['run']}", resume="allow", reinit="create_new",
                     name=f"{run_dir.path.name}/{label}", group="/".join(filter(None, (group, point_label(record, run)))),
                     job_type=record["env"], config=run_hyperparameters(record, run),
@@ -65,3 +69,22 @@ class WandbSink:
         for run in self.runs:
             run.finish()
         self.runs = []
+
+
+def check_login(wandb: Any, mode: str | None) -> None:
+    """Refuses, as UsageError, an online run without W&B credentials: W&B's own check of what is
+    stored (WANDB_API_KEY, .netrc, `wandb login`), not verified over the network and never a prompt."""
+    mode = mode or os.environ.get("WANDB_MODE") or "online"
+    if mode in ("offline", "dryrun", "disabled"):
+        return
+    try:
+        logged_in = wandb.login(verify=False, prompt=False)
+    except Exception as error:  # a malformed key, an unreadable .netrc
+        logged_in, why = False, f" ({type(error).__name__}: {(str(error).strip().splitlines() or [''])[0]})"
+    else:
+        why = ""
+    if not logged_in:
+        raise UsageError(
+            f"--track wandb: no W&B credentials{why}; run `wandb login` or set WANDB_API_KEY, "
+            "or log offline with --wandb-mode offline (wandb sync uploads later)"
+        )

@@ -190,6 +190,9 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         plan = runner.resumed_plan(args.resume)
         saved = {**dataclasses.asdict(plan), **dataclasses.asdict(plan.config), "algo": plan.config.algo}
         check_resume(args, given, saved)
+        from rpo_jax.envs.registry import check_import_outside
+
+        check_import_outside(plan.env, plan.out)  # config.json's env: never code from inside the run directory
         return plan
     check_new_run(args, given)
     env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name

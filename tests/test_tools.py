@@ -185,7 +185,7 @@ def test_onnx_graph_computes_the_documented_forward_pass(activation):
         "obs_mean": rng.normal(size=3), "obs_std": rng.uniform(0.5, 2, size=3), "obs_clip": np.float32(2.0),
         "kernel_0": rng.normal(size=(3, 5)), "bias_0": rng.normal(size=5), "kernel_1": rng.normal(size=(5, 2)),
         "bias_1": rng.normal(size=2), "action_low": -np.ones(2), "action_high": np.full(2, 0.5),
-        "log_std": np.zeros(2), "activation": np.str_(activation),
+        "log_std": np.zeros(2), "activation": np.str_(activation), "distribution": np.str_("gaussian"),
     }  # fmt: skip
     arrays = {name: value.astype(np.float32) if value.dtype.kind == "f" else value for name, value in arrays.items()}
     obs = rng.normal(size=(64, 3)).astype(np.float32) * 3

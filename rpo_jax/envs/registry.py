@@ -15,7 +15,11 @@ import dataclasses
 import difflib
 import functools
 import importlib
+import importlib.machinery
+import importlib.util
 import inspect
+import re
+from pathlib import Path
 from typing import Callable
 
 from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, playground, pybullet
@@ -56,6 +60,7 @@ def _entry(name: str) -> _Entry:
         return _REGISTRY[name]
     # Not kept in the registry, so that they are never listed and a changed module is read again.
     if name.startswith(gymnasium.PREFIX):
+        imported_module(name)  # Gymnasium imports the module of an id module:Env-v0
         return _Entry(lambda: gymnasium.make(name.removeprefix(gymnasium.PREFIX)), None)
     if ":" in name:
         return _Entry(lambda: import_factory(name)(), None)
@@ -69,12 +74,78 @@ def _entry(name: str) -> _Entry:
     )
 
 
+# An absolute module name: dotted identifiers, never a relative import (.m) or a file path (a/../b).
+MODULE_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
+
+
+def imported_module(name: str) -> str | None:
+    """The module that building `name` imports by name: an import path's, or that of a Gymnasium id
+    `module:Env-v0` (Gymnasium imports it); None for a registered name. UsageError for a module
+    name that is not absolute (relative, or a file path), which is never imported."""
+    if name in _REGISTRY or ":" not in name:
+        return None
+    module_name = name.removeprefix(gymnasium.PREFIX).partition(":")[0]
+    if not MODULE_NAME.fullmatch(module_name):
+        raise UsageError(
+            f"env {name!r}: {module_name!r} is not a module name; an import path is package.module:factory "
+            "with an absolute, dotted module name (no relative import, no file path)"
+        )
+    return module_name
+
+
+def check_import_outside(name: str, directory: Path) -> None:
+    """Refuses, as UsageError, an environment `name` (read from a run directory's config.json)
+    whose module would be imported from inside `directory`: code shipped with a run directory
+    is never run. Found without importing anything."""
+    module_name = imported_module(name)
+    if module_name is None:
+        return
+    inside = Path(directory).resolve()
+    for location in module_locations(module_name):
+        if location.resolve().is_relative_to(inside):
+            raise UsageError(
+                f"{directory}: its environment {name!r} would import {module_name} from {location}, inside the run "
+                "directory, whose code is never run; if you trust it, run from another directory with that module "
+                "on PYTHONPATH outside the run directory"
+            )
+
+
+def module_locations(module_name: str) -> list[Path]:
+    """The files and directories that importing `module_name` would load it and its packages
+    from, found by the import system's finders without running any of them."""
+    locations: list[Path] = []
+    search: list[str] | None = None
+    parts = module_name.split(".")
+    for depth, part in enumerate(parts, 1):
+        try:
+            if depth == 1:
+                spec = importlib.util.find_spec(part)
+            else:
+                spec = importlib.machinery.PathFinder.find_spec(".".join(parts[:depth]), search)
+        except KeyError:  # a namespace package in one not imported: its portions, found as the finder would
+            search = [str(Path(entry, part)) for entry in search or () if Path(entry, part).is_dir()]
+            locations += map(Path, search)
+            continue
+        except (ImportError, ValueError):
+            break
+        if spec is None:  # not found: importing it fails, and says so
+            break
+        if spec.has_location and spec.origin:
+            locations.append(Path(spec.origin))
+        search = list(spec.submodule_search_locations or [])
+        locations += map(Path, search)
+        if not search:  # a module: the last part
+            break
+    return locations
+
+
 def import_factory(path: str) -> Callable[[], Env]:
     """The callable named by the import path `package.module:factory` (a dotted attribute after
     the colon is followed), checked to be callable without arguments."""
     module_name, _, attribute = path.partition(":")
     if not module_name or not attribute:
         raise UsageError(f"env {path!r}: an import path is package.module:factory, e.g. my_package.envs:make_env")
+    imported_module(path)  # refuses relative and file-system module names
     try:
         module = importlib.import_module(module_name)
     except ImportError as error:
@@ -82,6 +153,8 @@ def import_factory(path: str) -> Callable[[], Env]:
             f"env {path!r}: cannot import {module_name} ({type(error).__name__}: {error}); "
             "it must be installed or on PYTHONPATH (the current directory is, under python -m)"
         ) from None
+    except (Exception, SystemExit) as error:  # the module's own code failed (or exited) as it ran
+        raise UsageError(f"env {path!r}: importing {module_name} raised {_described(error)}") from None
     try:
         factory = functools.reduce(getattr, attribute.split("."), module)
     except AttributeError:
@@ -93,6 +166,14 @@ def import_factory(path: str) -> Callable[[], Env]:
     except ValueError:  # a builtin without a signature: it is called as it is
         pass
     return factory
+
+
+def _described(error: BaseException) -> str:
+    """An exception as one line: its type and its message's first line."""
+    if isinstance(error, SystemExit):
+        return f"SystemExit (exit code {error.code!r}): it must return, not exit"
+    first = (str(error).strip().splitlines() or [""])[0][:300]
+    return f"{type(error).__name__}: {first}" if first else type(error).__name__
 
 
 def env_spec(name: str) -> EnvSpec:
@@ -108,9 +189,15 @@ def make_env(name: str) -> Env:
     """The environment registered under `name`: a single (unbatched) JAX environment, or a
     host-side one (`host.HostEnv`) that only exists batched. `vectorize` batches either.
     A missing optional dependency raises `MissingExtraError` (a UsageError) naming the
-    extra to install; an environment that lacks what the protocol needs, a UsageError naming
-    what it lacks."""
-    env = _entry(name).factory()
+    extra to install; an environment that lacks what the protocol needs, or a factory that
+    raises or exits, a UsageError naming what it lacks or what it raised."""
+    factory = _entry(name).factory
+    try:
+        env = factory()
+    except UsageError:  # a missing extra, an unknown Gymnasium id: said already
+        raise
+    except (Exception, SystemExit) as error:  # a user's factory failed (or exited): one line, not a traceback
+        raise UsageError(f"env {name!r}: its factory raised {_described(error)}") from None
     missing = missing_members(env)
     if missing:
         raise UsageError(
