@@ -583,13 +583,15 @@ def train_chunks(
 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
     """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
-    or inf, naming what went non-finite first: observation, reward, loss (any logged metric) or
-    parameters. Arrays are [runs, updates of the chunk]."""
+    or inf, naming what went non-finite first: observation, reward, loss (any logged metric),
+    parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
+    updates of the chunk]."""
     found = {
         "observation": diagnostics.nonfinite_observations > 0,
         "reward": diagnostics.nonfinite_rewards > 0,
         "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
         "parameters": diagnostics.nonfinite_parameters > 0,
+        **{statistic_name(name): counts > 0 for name, counts in diagnostics.nonfinite_statistics.items()},
     }
     bad = np.any(list(found.values()), axis=0)
     if not bad.any():
@@ -597,6 +599,16 @@ def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple
     offset = int(np.argmax(bad.any(axis=0)))
     run = int(np.argmax(bad[:, offset]))
     return offset, run, [name for name, flags in found.items() if flags[run, offset]]
+
+
+# The running statistics of ppo.running_statistics, as a divergence names them.
+STATISTICS = {"obs_stats": "observation normaliser's", "return_stats": "reward normaliser's", "value_stats": "value normaliser's"}
+
+
+def statistic_name(name: str) -> str:
+    """The name a divergence gives a statistic: "obs_stats.var" -> "observation normaliser's var (obs_stats.var)"."""
+    owner, _, field = name.partition(".")
+    return f"{STATISTICS.get(owner, owner)} {field} ({name})"
 
 
 def divergence_message(
