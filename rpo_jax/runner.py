@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import functools
 import itertools
+import json
 import math
 import os
 import shutil
@@ -56,6 +57,15 @@ PLAN_FIELDS = (
 )  # fmt: skip
 # What a resumed run of a config.json written before a field existed reads for it.
 PLAN_DEFAULTS = {"eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False}
+# The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
+PLAN_TYPES: dict[str, tuple[type, ...]] = {
+    "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
+    "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
+    "devices": (int, type(None)), "shard_envs": (bool,),
+}  # fmt: skip
+# The plan's fields that decide the numbers a run trains to, besides every Config field: each
+# checkpoint records them (`training_record`), and a resume whose config.json differs is refused.
+TRAINING_FIELDS = ("env", "seed", "num_seeds", "sweep")
 
 
 class Sink(Protocol):
@@ -114,8 +124,7 @@ def new_plan(
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
     grid = check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
-    if eval_every < 0 or eval_episodes < 1:
-        raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
+    check_evaluation(eval_every, eval_episodes)
     if is_primary():  # the one process that writes it (the others may find it begun)
         if not RunDir(out).is_new():
             raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
@@ -155,6 +164,11 @@ def check_plan(
     return parse_sweeps(sweep, config)
 
 
+def check_evaluation(eval_every: int, eval_episodes: int) -> None:
+    if eval_every < 0 or eval_episodes < 1:
+        raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
+
+
 def check_seeds(seed: int, num_seeds: int) -> None:
     """Refuses seeds outside the PRNG key's range [0, 2**32), which would train another seed's run."""
     if not 0 <= seed or seed + num_seeds > SEED_LIMIT:
@@ -191,10 +205,53 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: {error}") from None
     except (KeyError, TypeError) as error:
         raise UsageError(f"--resume {out}: config.json was not written by rpo_jax.train (its plan lacks {error})") from None
+    try:
+        check_saved_plan(plan, config)
+    except UsageError as error:
+        raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
     return RunPlan(
         out=out, config=config, resuming=True,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
+
+
+def check_saved_plan(plan: dict[str, Any], config: Config) -> None:
+    """Refuses a plan read from config.json as its flags would be refused (a hand-edited one):
+    each field's type, then `check_plan` and `check_evaluation`."""
+    for name, types in PLAN_TYPES.items():
+        value = plan[name]
+        # JSON's true and false are Python's bools, which are ints too.
+        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+            allowed = " or ".join("null" if kind is type(None) else kind.__name__ for kind in types)
+            raise UsageError(f"{name} must be {allowed}, got {value!r}")
+    if not all(isinstance(spec, str) for spec in plan["sweep"]):
+        raise UsageError(f"sweep must be a list of NAME=V1,V2 strings, got {plan['sweep']!r}")
+    check_plan(
+        plan["env"], config, plan["seed"], plan["num_seeds"], plan["sweep"], plan["log_every"], plan["checkpoint_every"]
+    )  # fmt: skip
+    check_evaluation(plan["eval_every"], plan["eval_episodes"])
+
+
+def training_record(plan: RunPlan) -> dict[str, Any]:
+    """What a checkpoint records of the plan that trained it: TRAINING_FIELDS and every Config
+    field, as JSON reads them back."""
+    fields = {**{name: getattr(plan, name) for name in TRAINING_FIELDS}, **dataclasses.asdict(plan.config)}
+    return json.loads(json.dumps(fields))
+
+
+def check_trained_with(plan: RunPlan, record: dict[str, Any]) -> None:
+    """Refuses to continue a checkpoint with a config.json that differs from its record in a
+    field that changes training (edited by hand): the run would go on as another one. A
+    checkpoint saved before the record held them, or a field added since, is not compared."""
+    saved = record.get("trained_with")
+    if not isinstance(saved, dict):
+        return
+    for name, value in training_record(plan).items():
+        if name in saved and saved[name] != value:
+            raise UsageError(
+                f"--resume {plan.out}: config.json's {name} is {value!r}, but the checkpoint at update {record.get('update')} "
+                f"was trained with {saved[name]!r}; a run continues with the values it was trained with"
+            )
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -480,6 +537,8 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
         checkpointer.close()
     for line in skipped:
         print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
+    if restored is not None:
+        check_trained_with(plan, restored[1])
     return restored
 
 
@@ -570,7 +629,7 @@ def train_chunks(
                 checkpointer.save(
                     updates_done, compiled.placement.checkpoint_state(state),
                     {"update": updates_done, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
-                     "train_seconds": train_seconds},
+                     "train_seconds": train_seconds, "trained_with": training_record(plan)},
                 )  # fmt: skip
                 last_checkpoint = updates_done
             if progress:

@@ -2,17 +2,22 @@
 spec lies, a resume on another layout or from a hand-edited config.json, and timings that count
 training only. On the point mass of tests/test_reliability.py."""
 
+# ruff: noqa: F811 (the tests take test_reliability's fixtures, imported below, as arguments)
+
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 
 import pytest
 from point_mass import PointMass
-from test_reliability import (  # noqa: F401 (fixtures, found by pytest in this module's names)
-    NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, finished, one_line, test_envs, unfinished,
-)  # fmt: skip
+from test_reliability import TINY_FLAGS_ANY_ENV, one_line
+from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
 from rpo_jax import envs, train
 from rpo_jax.envs import registry
+from rpo_jax.rundir import CONFIG_FILE, PARAMS_FILE, SUMMARY_FILE
 
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
 
@@ -39,7 +44,7 @@ class Huge(PointMass):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def state_envs(test_envs):  # noqa: F811 (the fixture imported above, which this one extends)
+def state_envs(test_envs):
     for quantity in ("observation", "reward"):
         envs.register_env(f"test/huge_{quantity}", lambda q=quantity: Huge(q), PointMass.spec)
     yield
@@ -66,3 +71,64 @@ def test_a_huge_finite_value_that_overflows_a_normaliser_stops_the_run(tmp_path,
     assert line.startswith(f"error: training diverged: non-finite {statistic} at update 1 in run 0 "), line
     assert line.endswith(f"{out} removed (no checkpoint to resume)"), line
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 7: a hand-edited config.json is checked as the flags are, and against the checkpoint
+
+
+def edit_config(out: Path, part: str, **changes) -> None:
+    path = out / CONFIG_FILE
+    record = json.loads(path.read_text())
+    record[part].update(changes)
+    path.write_text(json.dumps(record))
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("plan", {"seed": 2**40}, "--seed must give seeds in [0, 2**32 - 1 = 4294967295] (the PRNG key's range), got seeds"),
+        ("plan", {"seed": "x"}, "seed must be int, got 'x'"),
+        ("plan", {"seed": True}, "seed must be int, got True"),
+        ("plan", {"num_seeds": 0}, "--num-seeds must be >= 1, got 0"),
+        ("plan", {"log_every": 0}, "--log-every must be >= 1, got 0"),
+        ("plan", {"checkpoint_every": -5}, "--checkpoint-every must be >= 0 (0: never), got -5"),
+        ("plan", {"eval_every": -100}, "--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got -100, 10"),
+        ("plan", {"devices": "all"}, "devices must be int or null, got 'all'"),
+        ("plan", {"sweep": ["lr=x"]}, "--sweep lr=x: values must be numbers separated by commas"),
+    ],
+)
+def test_resume_refuses_a_config_json_plan_that_the_flags_would_refuse(unfinished, capsys, part, changes, message):
+    edit_config(unfinished, part, **changes)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {unfinished}: config.json's plan is not one the flags allow: {message}"), line
+    assert not (unfinished / SUMMARY_FILE).exists()
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("config", {"lr": 0.002}, "config.json's lr is 0.002, but the checkpoint at update 19 was trained with 0.001"),
+        ("config", {"gamma": 0.9}, "config.json's gamma is 0.9, but the checkpoint at update 19 was trained with 0.99"),
+        ("plan", {"seed": 7}, "config.json's seed is 7, but the checkpoint at update 19 was trained with 1"),
+    ],
+)
+def test_resume_refuses_a_config_json_that_differs_from_the_checkpoint(unfinished, capsys, part, changes, message):
+    edit_config(unfinished, part, **changes)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {unfinished}: {message}; a run continues with"), line
+    assert not (unfinished / SUMMARY_FILE).exists()
+
+
+def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unfinished, capsys):
+    # As one saved before checkpoints recorded them: continued, exactly.
+    for checkpoint in (unfinished / "checkpoints").glob("[0-9]*"):
+        path = checkpoint / "record" / "metadata"
+        record = json.loads(path.read_text())
+        old = {name: record[name] for name in ("update", "metrics_bytes", "train_seconds")}
+        assert "trained_with" in record
+        path.write_text(json.dumps(old))
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
