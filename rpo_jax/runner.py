@@ -427,13 +427,13 @@ def train_locked(
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
     record_returns(kept_rows, logged_returns)
     try:
-        state, train_seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+        state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
     finally:
         for sink in sinks:
             sink.close()
         compiled.trainer.close()
     params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
-    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
+    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
     if primary:
         run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         run_dir.write_summary(summary)
@@ -472,7 +472,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
         chunk_program = compiler.submit(placement.chunk_program, trainer, chunk, abstract_state)
         restored = restore(plan, placement.checkpoint_layout(abstract_state)) if plan.resuming else None
         if restored is None:
-            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
+            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0}
         else:
             state, record = placement.from_checkpoint(restored[0]), restored[1]
             if env.spec.runs_on_host:
@@ -589,33 +589,52 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
 
 
+class Clock:
+    """The seconds of a run by what they were spent on: training (the chunks and the host's work
+    between them), evaluation (with its compile) and checkpointing, so that train_seconds and
+    steps/s count training only. A resumed run's go on from its checkpoint's record."""
+
+    KINDS = ("train_seconds", "eval_seconds", "checkpoint_seconds")
+
+    def __init__(self, record: dict[str, Any]) -> None:
+        self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
+        self.last = time.perf_counter()
+
+    def lap(self, kind: str) -> None:
+        """Counts the seconds since the last lap as `kind`'s."""
+        now = time.perf_counter()
+        self.seconds[kind] += now - self.last
+        self.last = now
+
+
 def train_chunks(
     plan: RunPlan, compiled: Compiled, runs: list[dict[str, Any]], sinks: Sequence[Sink],
     progress: ProgressFn | None, logged_returns: dict[str, list[list[float]]],
-) -> tuple[ppo.TrainState, float]:  # fmt: skip
-    """The loop over chunks; returns the final state and the training seconds."""
+) -> tuple[ppo.TrainState, dict[str, float]]:  # fmt: skip
+    """The loop over chunks; returns the final state and the `Clock`'s seconds."""
     config, record, chunk, state = plan.config, compiled.record, compiled.chunk, compiled.state
     checkpoint_updates = math.ceil(plan.checkpoint_every / config.batch_size) if plan.checkpoint_every else 0
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
-    train_start = time.perf_counter() - record["train_seconds"]
-    steps_before, resumed_at, last_checkpoint = record["update"] * config.batch_size, time.perf_counter(), record["update"]
+    clock = Clock(record)
+    steps_before, last_checkpoint = record["update"] * config.batch_size, record["update"]
+    trained_before = clock.seconds["train_seconds"]  # steps/s counts this process's steps and seconds
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
             state, (metrics, diagnostics) = compiled.run_chunk(state)
             metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
+            nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
+            clock.lap("train_seconds")
             updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
-            sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
-            nonfinite = first_nonfinite(metrics, diagnostics)
+            sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
             if nonfinite:
                 # The updates before it are finite and logged; it and the state after it are not kept.
                 if metrics_file:
                     write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
                 raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
-            eval_start = time.perf_counter()
             eval_returns = evaluate_after_chunk(plan, compiled, state, first_update)
-            resumed_at += time.perf_counter() - eval_start  # steps/s counts training only
+            clock.lap("eval_seconds")
             rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns)
             if metrics_file:
                 write_rows(metrics_file, rows)
@@ -623,21 +642,32 @@ def train_chunks(
             for sink in sinks:
                 sink.write(rows)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
-                train_seconds = time.perf_counter() - train_start
-                metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
-                metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
-                checkpointer.save(
-                    updates_done, compiled.placement.checkpoint_state(state),
-                    {"update": updates_done, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
-                     "train_seconds": train_seconds, "trained_with": training_record(plan)},
-                )  # fmt: skip
+                clock.lap("train_seconds")
+                save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)
+                clock.lap("checkpoint_seconds")
                 last_checkpoint = updates_done
             if progress:
                 last_return, last_entropy = metrics.episode_return[:, -1].mean(), metrics.policy_entropy[:, -1].mean()
                 progress(steps_done, sps, float(last_return), float(last_entropy))
     if checkpointer:
         checkpointer.close()
-    return state, time.perf_counter() - train_start
+    clock.lap("train_seconds")
+    return state, clock.seconds
+
+
+def save_checkpoint(
+    plan: RunPlan, compiled: Compiled, checkpointer: Checkpointer, state: ppo.TrainState, update: int,
+    metrics_file: Any, seconds: dict[str, float],
+) -> None:  # fmt: skip
+    """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
+    seconds so far and what the run was trained with."""
+    metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+    metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
+    checkpointer.save(
+        update, compiled.placement.checkpoint_state(state),
+        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **seconds,
+         "trained_with": training_record(plan)},
+    )  # fmt: skip
 
 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
@@ -692,10 +722,10 @@ def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[li
 
 def summarise(
     plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]],
-    compile_seconds: float, train_seconds: float,
+    compile_seconds: float, seconds: dict[str, float],
 ) -> dict[str, Any]:  # fmt: skip
     """summary.json's content; adds each run's final return (and, with evaluation, its last
-    evaluation return) to `runs`."""
+    evaluation return) to `runs`. `seconds` are the `Clock`'s: steps/s counts training only."""
     config = plan.config
     names = ["final_return", "eval_return"] if plan.eval_every else ["final_return"]
     for index, run in enumerate(runs):
@@ -717,8 +747,8 @@ def summarise(
         "grid": grid_summary,
         "runs": runs,
         "compile_seconds": compile_seconds,
-        "train_seconds": train_seconds,
-        "sps": env_steps * len(runs) / train_seconds,
+        **seconds,
+        "sps": env_steps * len(runs) / seconds["train_seconds"],
         "device": str(jax.devices()[0].device_kind),
     }
 

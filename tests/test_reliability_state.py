@@ -7,17 +7,18 @@ training only. On the point mass of tests/test_reliability.py."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 
 import pytest
 from point_mass import PointMass
-from test_reliability import TINY_FLAGS_ANY_ENV, one_line
+from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
 from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
-from rpo_jax import envs, train
+from rpo_jax import envs, runner, train
 from rpo_jax.envs import registry
-from rpo_jax.rundir import CONFIG_FILE, PARAMS_FILE, SUMMARY_FILE
+from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
 
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
 
@@ -132,3 +133,35 @@ def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unf
         path.write_text(json.dumps(old))
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
     assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 17: steps/s and train_seconds count training only
+
+
+def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out(tmp_path, monkeypatch):
+    # Evaluations and checkpoints made slow (2 s and 1 s each) against a training of 20 tiny
+    # updates that takes well under a second: counted in train_seconds, they would dominate it.
+    def slow(name, seconds):
+        function = getattr(runner, name)
+
+        def slowed(*args, **kwargs):
+            result = function(*args, **kwargs)
+            if result is not None or name == "save_checkpoint":  # an evaluation was due, or a checkpoint
+                time.sleep(seconds)
+            return result
+
+        monkeypatch.setattr(runner, name, slowed)
+
+    slow("evaluate_after_chunk", 2.0)
+    slow("save_checkpoint", 1.0)
+    out = tmp_path / "run"
+    every = NUM_ENVS * NUM_STEPS
+    flags = [*TINY_FLAGS, "--eval-every", str(10 * every), "--eval-episodes", "2", "--checkpoint-every", str(5 * every)]
+    assert train.main([*flags, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["eval_seconds"] >= 2 * 2.0 and summary["checkpoint_seconds"] >= 3 * 1.0, summary
+    assert summary["train_seconds"] < 3.0, summary
+    assert summary["sps"] == summary["total_timesteps"] / summary["train_seconds"]
+    rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
+    assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
