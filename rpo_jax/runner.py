@@ -102,6 +102,7 @@ class RunPlan:
     devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
     shard_envs: bool = False  # split each run's environments over the devices instead of the runs
     resuming: bool = False
+    allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
 
     @property
     def seeds(self) -> range:
@@ -383,6 +384,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     the others write only their shares of the checkpoints (orbax's multi-process saves)."""
     grid = parse_sweeps(plan.sweep, plan.config)
     env = envs.make_env(plan.env)
+    check_environment(plan.env, env)
     if not is_primary():
         with _interruptible(plan.out), _out_of_memory_refused():
             return train_locked(plan, env, grid, (), None)
@@ -406,6 +408,16 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
             raise type(error)(f"{error}; {plan.out} removed (no checkpoint to resume)") from None
 
 
+def check_environment(name: str, env: envs.Env) -> None:
+    """Refuses, before anything is written or compiled, an environment whose spec disagrees with
+    itself, with its kind or with a first reset and step (`envs.first_step_problems`): it would
+    train on wrong sizes or bounds, or fail deep inside JAX."""
+    problems = envs.first_step_problems(env)
+    if problems:
+        more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+        raise UsageError(f"--env {name}: {problems[0]}{more}; python -m rpo_jax.envs --check {name} checks it in full")
+
+
 def train_locked(
     plan: RunPlan, env: envs.Env, grid: list[dict[str, float]], sinks: Sequence[Sink], progress: ProgressFn | None
 ) -> dict[str, Any]:
@@ -416,6 +428,7 @@ def train_locked(
     primary = is_primary()
     if plan.resuming:
         devices.check_resumable(run_dir.read_config(), placement, plan.out)
+        check_layout(run_dir.read_config(), placement, plan)
     elif primary:
         run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
     compiled = compile_runs(plan, env, runs, placement)
@@ -438,6 +451,21 @@ def train_locked(
         run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
+
+
+def check_layout(saved_record: dict[str, Any], placement: devices.Placement, plan: RunPlan) -> None:
+    """Refuses, unless `plan.allow_relayout`, a resume on another number of processes or devices
+    than the run's (where `devices.check_resumable` lets it restore at all): each layout compiles
+    programs of its own shapes, which round differently, so the run would not continue as the
+    uninterrupted one."""
+    saved = (saved_record.get("processes", 1), saved_record.get("devices", 1))
+    if plan.allow_relayout or saved == (placement.processes, placement.count):
+        return
+    raise UsageError(
+        f"--resume {plan.out}: the run was trained by {saved[0]} process(es) on {saved[1]} device(s), and would resume by "
+        f"{placement.processes} on {placement.count}, which is not bit-exact; resume on its layout (--devices, "
+        "--cpu-devices), or add --allow-relayout to continue on this one"
+    )
 
 
 @contextlib.contextmanager

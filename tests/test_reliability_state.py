@@ -7,10 +7,14 @@ training only. On the point mass of tests/test_reliability.py."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 
+import jax.numpy as jnp
 import pytest
 from point_mass import PointMass
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
@@ -20,6 +24,7 @@ from rpo_jax import envs, runner, train
 from rpo_jax.envs import registry
 from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
 
+ROOT = Path(__file__).resolve().parents[1]
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
 
 
@@ -165,3 +170,81 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
     assert summary["sps"] == summary["total_timesteps"] / summary["train_seconds"]
     rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
     assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
+
+
+# --------------------------------------------------------------------------------------------
+# Item 6: a resume on another layout is refused unless asked for
+
+
+def train_on_cpu_devices(count: int, *args: str) -> subprocess.CompletedProcess:
+    """`python -m rpo_jax.train ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
+    as JAX starts), where the point mass is importable as point_mass:PointMass."""
+    environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
+    environment |= {"PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
+    command = [sys.executable, "-m", "rpo_jax.train", *args, "--cpu-devices", str(count)]
+    return subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
+
+
+def test_a_resume_on_another_device_count_is_refused_unless_allowed(tmp_path, capsys):
+    out = tmp_path / "run"
+    flags = ["--env", "point_mass:PointMass", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2", "--checkpoint-every", "1024"]
+    trained = train_on_cpu_devices(2, *flags, "--out", str(out))
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    (out / SUMMARY_FILE).unlink()  # as if killed after its last checkpoint; this process has one device
+    assert train.main(["--resume", str(out), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line == (
+        f"error: --resume {out}: the run was trained by 1 process(es) on 2 device(s), and would resume by 1 on 1, which is "
+        "not bit-exact; resume on its layout (--devices, --cpu-devices), or add --allow-relayout to continue on this one"
+    )
+    assert not (out / SUMMARY_FILE).exists()
+    assert train.main(["--resume", str(out), "--quiet", "--allow-relayout"]) == 0
+    assert json.loads((out / SUMMARY_FILE).read_text())["devices"] == 1
+
+
+def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
+    assert train.main([*TINY_FLAGS, "--allow-relayout", "--out", str(tmp_path / "run")]) == 2
+    assert one_line(capsys) == "error: --allow-relayout applies to --resume only; a new run trains on the layout it is given"
+    assert not (tmp_path / "run").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 5: train checks the spec against a first reset and step before it compiles
+
+
+def lying(spec: envs.EnvSpec):
+    """The point mass under another spec."""
+    return type("Lying", (PointMass,), {"spec": spec})
+
+
+class ShapeError(PointMass):
+    def step(self, state, action):
+        return super().step(state, jnp.concatenate([action, action]) @ jnp.ones((3,)))
+
+
+LIARS = {
+    "bounds": (lying(envs.EnvSpec("bounds", 2, 1, (1.0,), (-1.0,), 50, "jax")),
+               "spec.action_low (1.0,) is not below action_high (-1.0,) everywhere"),
+    "host": (lying(envs.EnvSpec("host", 2, 1, (-1.0,), (1.0,), 50, "host")),
+             "spec.backend is 'host', but the environment is a JAX one: the backend is 'host' exactly for host-side"),
+    "obs-size": (lying(envs.EnvSpec("obs-size", 3, 1, (-1.0,), (1.0,), 50, "jax")),
+                 "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
+    "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
+    "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", LIARS)
+def test_train_refuses_an_environment_whose_spec_lies_before_compiling(tmp_path, capsys, monkeypatch, name):
+    factory, message = LIARS[name]
+    monkeypatch.setitem(registry._REGISTRY, f"test/liar-{name}", registry._Entry(factory, None))
+    out = tmp_path / "run"
+    code = train.main(["--env", f"test/liar-{name}", *TINY_FLAGS_ANY_ENV, "--out", str(out)])
+    if message is None:  # the point mass ignores a second action: nothing to see in a reset and a step
+        assert code == 0
+        return
+    assert code == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --env test/liar-{name}: {message}"), line
+    assert line.endswith(f"; python -m rpo_jax.envs --check test/liar-{name} checks it in full"), line
+    assert not out.exists()
