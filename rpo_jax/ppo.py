@@ -251,18 +251,40 @@ class Metrics:
 class Diagnostics:
     """Per-update counts of non-finite numbers, for the runner's guard; not logged, so that
     metrics.jsonl keeps its rows. Observations and rewards are the rollout's, as the trainer
-    saw them (normalised); parameters are those after the update."""
+    saw them (normalised); parameters and statistics are those after the update. A huge but
+    finite observation overflows its normaliser's variance to inf while the normalised
+    observations stay finite (zeros), so the statistics are counted apart: {"obs_stats.var": n}."""
 
     nonfinite_observations: jax.Array
     nonfinite_rewards: jax.Array
     nonfinite_parameters: jax.Array
+    nonfinite_statistics: dict[str, jax.Array]
 
     @classmethod
-    def of(cls, traj: "Transition", params: dict) -> "Diagnostics":
+    def of(cls, traj: "Transition", state: "TrainState", config: Config) -> "Diagnostics":
         def count(*arrays):
             return sum((~jnp.isfinite(x)).sum() for x in arrays)
 
-        return cls(count(traj.obs, traj.final_obs), count(traj.reward, traj.episode_return), count(*jax.tree.leaves(params)))
+        statistics = {
+            f"{name}.{field}": count(getattr(stats, field))
+            for name, stats in running_statistics(state, config).items()
+            for field in ("mean", "var", "count")
+        }
+        return cls(
+            count(traj.obs, traj.final_obs), count(traj.reward, traj.episode_return), count(*jax.tree.leaves(state.params)),
+            statistics,
+        )  # fmt: skip
+
+
+def running_statistics(state: "TrainState", config: Config) -> dict[str, envs.RunningMeanStd]:
+    """The running statistics that training reads, by their field's name: the observation
+    normaliser's (obs_stats), the reward normaliser's (return_stats) and the critic's targets'
+    (value_stats), each where its option is on (an unused one is never read)."""
+    found = jax.tree_util.tree_flatten_with_path(state.env_state, is_leaf=lambda x: isinstance(x, envs.RunningMeanStd))[0]
+    named = {path[-1].name: stats for path, stats in found if isinstance(stats, envs.RunningMeanStd)}
+    named["value_stats"] = state.value_stats
+    used = {"obs_stats": config.normalize_obs, "return_stats": config.normalize_reward, "value_stats": config.normalize_value}
+    return {name: stats for name, stats in named.items() if used.get(name, True)}
 
 
 @struct.dataclass
@@ -353,7 +375,7 @@ class Trainer:
 
         def step(state, _):
             new_state, metrics, traj = update_with_rollout(self, state)
-            return new_state, (metrics, Diagnostics.of(traj, new_state.params))
+            return new_state, (metrics, Diagnostics.of(traj, new_state, self.config))
 
         return jax.lax.scan(step, state, None, length=num_updates)
 

@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import functools
 import itertools
+import json
 import math
 import os
 import shutil
@@ -56,6 +57,15 @@ PLAN_FIELDS = (
 )  # fmt: skip
 # What a resumed run of a config.json written before a field existed reads for it.
 PLAN_DEFAULTS = {"eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False}
+# The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
+PLAN_TYPES: dict[str, tuple[type, ...]] = {
+    "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
+    "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
+    "devices": (int, type(None)), "shard_envs": (bool,),
+}  # fmt: skip
+# The plan's fields that decide the numbers a run trains to, besides every Config field: each
+# checkpoint records them (`training_record`), and a resume whose config.json differs is refused.
+TRAINING_FIELDS = ("env", "seed", "num_seeds", "sweep")
 
 
 class Sink(Protocol):
@@ -92,6 +102,7 @@ class RunPlan:
     devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
     shard_envs: bool = False  # split each run's environments over the devices instead of the runs
     resuming: bool = False
+    allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
 
     @property
     def seeds(self) -> range:
@@ -114,8 +125,7 @@ def new_plan(
 ) -> RunPlan:  # fmt: skip
     """A plan for a new run directory `out`, checked before anything is written."""
     grid = check_plan(env, config, seed, num_seeds, sweep, log_every, checkpoint_every)
-    if eval_every < 0 or eval_episodes < 1:
-        raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
+    check_evaluation(eval_every, eval_episodes)
     if is_primary():  # the one process that writes it (the others may find it begun)
         if not RunDir(out).is_new():
             raise UsageError(f"--out {out} already exists and is not an empty directory; choose a new one or --resume it")
@@ -153,6 +163,11 @@ def check_plan(
     if checkpoint_every is not None and checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {checkpoint_every}")
     return parse_sweeps(sweep, config)
+
+
+def check_evaluation(eval_every: int, eval_episodes: int) -> None:
+    if eval_every < 0 or eval_episodes < 1:
+        raise UsageError(f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {eval_every}, {eval_episodes}")
 
 
 def check_seeds(seed: int, num_seeds: int) -> None:
@@ -193,10 +208,53 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: {error}") from None
     except (KeyError, TypeError) as error:
         raise UsageError(f"--resume {out}: config.json was not written by rpo_jax.train (its plan lacks {error})") from None
+    try:
+        check_saved_plan(plan, config)
+    except UsageError as error:
+        raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
     return RunPlan(
         out=out, config=config, resuming=True,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
+
+
+def check_saved_plan(plan: dict[str, Any], config: Config) -> None:
+    """Refuses a plan read from config.json as its flags would be refused (a hand-edited one):
+    each field's type, then `check_plan` and `check_evaluation`."""
+    for name, types in PLAN_TYPES.items():
+        value = plan[name]
+        # JSON's true and false are Python's bools, which are ints too.
+        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+            allowed = " or ".join("null" if kind is type(None) else kind.__name__ for kind in types)
+            raise UsageError(f"{name} must be {allowed}, got {value!r}")
+    if not all(isinstance(spec, str) for spec in plan["sweep"]):
+        raise UsageError(f"sweep must be a list of NAME=V1,V2 strings, got {plan['sweep']!r}")
+    check_plan(
+        plan["env"], config, plan["seed"], plan["num_seeds"], plan["sweep"], plan["log_every"], plan["checkpoint_every"]
+    )  # fmt: skip
+    check_evaluation(plan["eval_every"], plan["eval_episodes"])
+
+
+def training_record(plan: RunPlan) -> dict[str, Any]:
+    """What a checkpoint records of the plan that trained it: TRAINING_FIELDS and every Config
+    field, as JSON reads them back."""
+    fields = {**{name: getattr(plan, name) for name in TRAINING_FIELDS}, **dataclasses.asdict(plan.config)}
+    return json.loads(json.dumps(fields))
+
+
+def check_trained_with(plan: RunPlan, record: dict[str, Any]) -> None:
+    """Refuses to continue a checkpoint with a config.json that differs from its record in a
+    field that changes training (edited by hand): the run would go on as another one. A
+    checkpoint saved before the record held them, or a field added since, is not compared."""
+    saved = record.get("trained_with")
+    if not isinstance(saved, dict):
+        return
+    for name, value in training_record(plan).items():
+        if name in saved and saved[name] != value:
+            raise UsageError(
+                f"--resume {plan.out}: config.json's {name} is {value!r}, but the checkpoint at update {record.get('update')} "
+                f"was trained with {saved[name]!r}; a run continues with the values it was trained with"
+            )
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -328,6 +386,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     the others write only their shares of the checkpoints (orbax's multi-process saves)."""
     grid = parse_sweeps(plan.sweep, plan.config)
     env = envs.make_env(plan.env)
+    check_environment(plan.env, env)
     if not is_primary():
         with _interruptible(plan.out), _out_of_memory_refused():
             return train_locked(plan, env, grid, (), None)
@@ -353,6 +412,16 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
             raise type(error)(f"{error}; {plan.out} removed (no checkpoint to resume)") from None
 
 
+def check_environment(name: str, env: envs.Env) -> None:
+    """Refuses, before anything is written or compiled, an environment whose spec disagrees with
+    itself, with its kind or with a first reset and step (`envs.first_step_problems`): it would
+    train on wrong sizes or bounds, or fail deep inside JAX."""
+    problems = envs.first_step_problems(env)
+    if problems:
+        more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+        raise UsageError(f"--env {name}: {problems[0]}{more}; python -m rpo_jax.envs --check {name} checks it in full")
+
+
 def train_locked(
     plan: RunPlan, env: envs.Env, grid: list[dict[str, float]], sinks: Sequence[Sink], progress: ProgressFn | None
 ) -> dict[str, Any]:
@@ -363,6 +432,7 @@ def train_locked(
     primary = is_primary()
     if plan.resuming:
         devices.check_resumable(run_dir.read_config(), placement, plan.out)
+        check_layout(run_dir.read_config(), placement, plan)
     elif primary:
         run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
     compiled = compile_runs(plan, env, runs, placement)
@@ -374,17 +444,32 @@ def train_locked(
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
     record_returns(kept_rows, logged_returns)
     try:
-        state, train_seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+        state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
     finally:
         for sink in sinks:
             sink.close()
         compiled.trainer.close()
     params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
-    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, train_seconds), **placement.describe()}
+    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
     if primary:
         run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
+
+
+def check_layout(saved_record: dict[str, Any], placement: devices.Placement, plan: RunPlan) -> None:
+    """Refuses, unless `plan.allow_relayout`, a resume on another number of processes or devices
+    than the run's (where `devices.check_resumable` lets it restore at all): each layout compiles
+    programs of its own shapes, which round differently, so the run would not continue as the
+    uninterrupted one."""
+    saved = (saved_record.get("processes", 1), saved_record.get("devices", 1))
+    if plan.allow_relayout or saved == (placement.processes, placement.count):
+        return
+    raise UsageError(
+        f"--resume {plan.out}: the run was trained by {saved[0]} process(es) on {saved[1]} device(s), and would resume by "
+        f"{placement.processes} on {placement.count}, which is not bit-exact; resume on its layout (--devices, "
+        "--cpu-devices), or add --allow-relayout to continue on this one"
+    )
 
 
 @contextlib.contextmanager
@@ -419,7 +504,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
         chunk_program = compiler.submit(placement.chunk_program, trainer, chunk, abstract_state)
         restored = restore(plan, placement.checkpoint_layout(abstract_state)) if plan.resuming else None
         if restored is None:
-            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0, "train_seconds": 0.0}
+            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0}
         else:
             state, record = placement.from_checkpoint(restored[0]), restored[1]
             if env.spec.runs_on_host:
@@ -484,6 +569,8 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
         checkpointer.close()
     for line in skipped:
         print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
+    if restored is not None:
+        check_trained_with(plan, restored[1])
     return restored
 
 
@@ -534,33 +621,52 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
 
 
+class Clock:
+    """The seconds of a run by what they were spent on: training (the chunks and the host's work
+    between them), evaluation (with its compile) and checkpointing, so that train_seconds and
+    steps/s count training only. A resumed run's go on from its checkpoint's record."""
+
+    KINDS = ("train_seconds", "eval_seconds", "checkpoint_seconds")
+
+    def __init__(self, record: dict[str, Any]) -> None:
+        self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
+        self.last = time.perf_counter()
+
+    def lap(self, kind: str) -> None:
+        """Counts the seconds since the last lap as `kind`'s."""
+        now = time.perf_counter()
+        self.seconds[kind] += now - self.last
+        self.last = now
+
+
 def train_chunks(
     plan: RunPlan, compiled: Compiled, runs: list[dict[str, Any]], sinks: Sequence[Sink],
     progress: ProgressFn | None, logged_returns: dict[str, list[list[float]]],
-) -> tuple[ppo.TrainState, float]:  # fmt: skip
-    """The loop over chunks; returns the final state and the training seconds."""
+) -> tuple[ppo.TrainState, dict[str, float]]:  # fmt: skip
+    """The loop over chunks; returns the final state and the `Clock`'s seconds."""
     config, record, chunk, state = plan.config, compiled.record, compiled.chunk, compiled.state
     checkpoint_updates = math.ceil(plan.checkpoint_every / config.batch_size) if plan.checkpoint_every else 0
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
-    train_start = time.perf_counter() - record["train_seconds"]
-    steps_before, resumed_at, last_checkpoint = record["update"] * config.batch_size, time.perf_counter(), record["update"]
+    clock = Clock(record)
+    steps_before, last_checkpoint = record["update"] * config.batch_size, record["update"]
+    trained_before = clock.seconds["train_seconds"]  # steps/s counts this process's steps and seconds
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
             state, (metrics, diagnostics) = compiled.run_chunk(state)
             metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
+            nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
+            clock.lap("train_seconds")
             updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
-            sps = (steps_done - steps_before) * len(runs) / (time.perf_counter() - resumed_at)
-            nonfinite = first_nonfinite(metrics, diagnostics)
+            sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
             if nonfinite:
                 # The updates before it are finite and logged; it and the state after it are not kept.
                 if metrics_file:
                     write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
                 raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
-            eval_start = time.perf_counter()
             eval_returns = evaluate_after_chunk(plan, compiled, state, first_update)
-            resumed_at += time.perf_counter() - eval_start  # steps/s counts training only
+            clock.lap("eval_seconds")
             rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns)
             if metrics_file:
                 write_rows(metrics_file, rows)
@@ -568,32 +674,45 @@ def train_chunks(
             for sink in sinks:
                 sink.write(rows)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
-                train_seconds = time.perf_counter() - train_start
-                metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
-                metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
-                checkpointer.save(
-                    updates_done, compiled.placement.checkpoint_state(state),
-                    {"update": updates_done, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
-                     "train_seconds": train_seconds},
-                )  # fmt: skip
+                clock.lap("train_seconds")
+                save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)
+                clock.lap("checkpoint_seconds")
                 last_checkpoint = updates_done
             if progress:
                 last_return, last_entropy = metrics.episode_return[:, -1].mean(), metrics.policy_entropy[:, -1].mean()
                 progress(steps_done, sps, float(last_return), float(last_entropy))
     if checkpointer:
         checkpointer.close()
-    return state, time.perf_counter() - train_start
+    clock.lap("train_seconds")
+    return state, clock.seconds
+
+
+def save_checkpoint(
+    plan: RunPlan, compiled: Compiled, checkpointer: Checkpointer, state: ppo.TrainState, update: int,
+    metrics_file: Any, seconds: dict[str, float],
+) -> None:  # fmt: skip
+    """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
+    seconds so far and what the run was trained with."""
+    metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+    metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
+    checkpointer.save(
+        update, compiled.placement.checkpoint_state(state),
+        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **seconds,
+         "trained_with": training_record(plan)},
+    )  # fmt: skip
 
 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
     """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
-    or inf, naming what went non-finite first: observation, reward, loss (any logged metric) or
-    parameters. Arrays are [runs, updates of the chunk]."""
+    or inf, naming what went non-finite first: observation, reward, loss (any logged metric),
+    parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
+    updates of the chunk]."""
     found = {
         "observation": diagnostics.nonfinite_observations > 0,
         "reward": diagnostics.nonfinite_rewards > 0,
         "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
         "parameters": diagnostics.nonfinite_parameters > 0,
+        **{statistic_name(name): counts > 0 for name, counts in diagnostics.nonfinite_statistics.items()},
     }
     bad = np.any(list(found.values()), axis=0)
     if not bad.any():
@@ -601,6 +720,16 @@ def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple
     offset = int(np.argmax(bad.any(axis=0)))
     run = int(np.argmax(bad[:, offset]))
     return offset, run, [name for name, flags in found.items() if flags[run, offset]]
+
+
+# The running statistics of ppo.running_statistics, as a divergence names them.
+STATISTICS = {"obs_stats": "observation normaliser's", "return_stats": "reward normaliser's", "value_stats": "value normaliser's"}
+
+
+def statistic_name(name: str) -> str:
+    """The name a divergence gives a statistic: "obs_stats.var" -> "observation normaliser's var (obs_stats.var)"."""
+    owner, _, field = name.partition(".")
+    return f"{STATISTICS.get(owner, owner)} {field} ({name})"
 
 
 def divergence_message(
@@ -625,10 +754,10 @@ def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[li
 
 def summarise(
     plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]],
-    compile_seconds: float, train_seconds: float,
+    compile_seconds: float, seconds: dict[str, float],
 ) -> dict[str, Any]:  # fmt: skip
     """summary.json's content; adds each run's final return (and, with evaluation, its last
-    evaluation return) to `runs`."""
+    evaluation return) to `runs`. `seconds` are the `Clock`'s: steps/s counts training only."""
     config = plan.config
     names = ["final_return", "eval_return"] if plan.eval_every else ["final_return"]
     for index, run in enumerate(runs):
@@ -650,8 +779,8 @@ def summarise(
         "grid": grid_summary,
         "runs": runs,
         "compile_seconds": compile_seconds,
-        "train_seconds": train_seconds,
-        "sps": env_steps * len(runs) / train_seconds,
+        **seconds,
+        "sps": env_steps * len(runs) / seconds["train_seconds"],
         "device": str(jax.devices()[0].device_kind),
     }
 

@@ -80,6 +80,9 @@ class TrainArgs:
     """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
+    allow_relayout: bool = False
+    """with --resume: continue on another number of devices or processes than the run was trained on; not bit-exact
+    (each layout compiles programs of its own shapes, which round differently), so refused without this flag"""
     devices: int | None = None
     """local devices to train on, in each process; None: all. The runs (seeds x sweep points) are split across them,
     at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
@@ -172,7 +175,7 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
     if args.out is not None and args.out.resolve() != args.resume.resolve():
         raise UsageError(f"--out {args.out} differs from --resume {args.resume}; a resumed run continues in its own directory")
     values = {**dataclasses.asdict(args), **dataclasses.asdict(args.config)}
-    ignored = {"resume", "out", "quiet", "help", "config", "compile_cache", *TRACKING_FIELDS, *PROCESS_FIELDS}
+    ignored = {"resume", "out", "quiet", "help", "config", "compile_cache", "allow_relayout", *TRACKING_FIELDS, *PROCESS_FIELDS}
     for name in sorted(given - ignored):
         value, saved_value = values[name], saved[name]
         if isinstance(value, (tuple, list)):
@@ -193,7 +196,9 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         from rpo_jax.envs.registry import check_import_outside
 
         check_import_outside(plan.env, plan.out)  # config.json's env: never code from inside the run directory
-        return plan
+        return dataclasses.replace(plan, allow_relayout=args.allow_relayout)
+    if args.allow_relayout:
+        raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
     env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name
     out = args.out or Path("runs") / f"{env}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"

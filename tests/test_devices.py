@@ -254,7 +254,7 @@ def test_split_runs_resume_on_another_cpu_split(tmp_path):
     out = tmp_path / "split"
     cpu_devices_command(*TINY_COMMAND, "--num-seeds", "3", "--cpu-devices", "2", "--checkpoint-every", "64", "--out", str(out))
     (out / "summary.json").unlink()  # as if killed after its last checkpoint
-    cpu_devices_command("--resume", str(out), "--cpu-devices", "3", "--quiet")
+    cpu_devices_command("--resume", str(out), "--cpu-devices", "3", "--allow-relayout", "--quiet")
     summary = RunDir(out).read_summary()
     assert (summary["placement"], summary["devices"], summary["padded_runs"], len(summary["runs"])) == ("runs", 3, 3, 3)
 

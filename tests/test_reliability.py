@@ -200,7 +200,9 @@ def test_first_nonfinite_names_the_first_update_and_run():
     zeros = np.zeros((3, 4), int)
     parameters = zeros.copy()
     parameters[1, 2] = 5
-    diagnostics = SimpleNamespace(nonfinite_observations=zeros, nonfinite_rewards=zeros, nonfinite_parameters=parameters)
+    diagnostics = SimpleNamespace(
+        nonfinite_observations=zeros, nonfinite_rewards=zeros, nonfinite_parameters=parameters, nonfinite_statistics={}
+    )
     assert runner.first_nonfinite(metrics, diagnostics) == (1, 2, ["loss"])
     metrics.policy_loss[:] = 0
     assert runner.first_nonfinite(metrics, diagnostics) == (2, 1, ["parameters"])

@@ -33,7 +33,8 @@ from typing import Any  # noqa: E402
 # Imported on first use, so that `python -m rpo_jax.envs --help` and the command lines that
 # import this package for a submodule (`dmc_tasks`) load no JAX.
 _EXPORTS = {
-    "check_env": "check", "BatchedHostEnv": "host", "HostEnv": "host", "SequentialSimulators": "host",
+    "check_env": "check", "first_step_problems": "check",
+    "BatchedHostEnv": "host", "HostEnv": "host", "SequentialSimulators": "host",
     "BatchedEnv": "protocol", "DrawsStarts": "protocol", "Env": "protocol", "EnvSpec": "protocol",
     "MissingExtraError": "protocol", "Renderable": "protocol", "Start": "protocol", "TimeStep": "protocol",
     "Vectorizable": "protocol", "first_step": "protocol",
@@ -76,6 +77,7 @@ __all__ = [
     "env_names",
     "env_spec",
     "first_step",
+    "first_step_problems",
     "make_env",
     "make_vector_env",
     "normalize_observation",

@@ -1,6 +1,9 @@
 """`check_env`: what the trainer relies on of an environment, checked by running it, with one
 line per problem found (`python -m rpo_jax.envs --check NAME` prints them).
 
+`first_step_problems` is the cheap part that training checks before it compiles: the spec, the
+environment's kind, and the shapes and dtypes of one reset and one step, traced but not run.
+
 A JAX environment is reset and stepped under `jax.jit` for a few steps; if that found nothing,
 `num_envs` copies run vmapped with the trainer's own time limit and auto-reset (`wrappers.VectorEnv`) for one
 step more than `max_episode_steps`, with random actions within the bounds. A host-side one
@@ -35,19 +38,13 @@ def check_env(env: Any, key: jax.Array | None = None, num_envs: int = 2) -> list
     """The problems found with `env` (a JAX environment or a host-side one), one line each;
     empty when it behaves as the trainer needs. Nothing is raised for a faulty environment:
     an exception inside it is reported as a problem."""
-    missing = missing_members(env)
+    missing = missing_problems(env)
     if missing:
-        return [f"{type(env).__name__} lacks {', '.join(missing)}, which the protocol needs (rpo_jax.envs.protocol.Env)"]
+        return missing
     key = jax.random.PRNGKey(0) if key is None else key
     single_key, batch_key = jax.random.split(key)
-    problems = spec_problems(env.spec)
+    problems = spec_problems(env.spec) + kind_problems(env)
     host = isinstance(env, Vectorizable)
-    if host != env.spec.runs_on_host:
-        kind = "host-side (it has vectorize)" if host else "a JAX one"
-        problems.append(
-            f"spec.backend is {env.spec.backend!r}, but the environment is {kind}: "
-            "the backend is 'host' exactly for host-side environments, whose state no checkpoint holds"
-        )
     if not host:
         found = _guarded("one environment under jax.jit", lambda: single_problems(env, single_key))
         if found:
@@ -60,6 +57,53 @@ def check_env(env: Any, key: jax.Array | None = None, num_envs: int = 2) -> list
         if callable(getattr(batch, "close", None)):
             batch.close()  # the host simulators that the check built
     return problems
+
+
+def first_step_problems(env: Any) -> list[str]:
+    """What training checks of `env` before it compiles, at the cost of a trace: `check_env`'s
+    checks of the protocol's members, the spec and the environment's kind, and for a JAX
+    environment the shapes and dtypes of a reset and a step (`jax.eval_shape`: nothing runs, so
+    no random number of the run is drawn and no simulator is built)."""
+    problems = missing_problems(env)
+    if problems:
+        return problems
+    problems = spec_problems(env.spec) + kind_problems(env)
+    if problems or isinstance(env, Vectorizable):
+        return problems
+    return _guarded("a reset and a step, traced", lambda: first_step_shapes(env))
+
+
+def missing_problems(env: Any) -> list[str]:
+    missing = missing_members(env)
+    if missing:
+        return [f"{type(env).__name__} lacks {', '.join(missing)}, which the protocol needs (rpo_jax.envs.protocol.Env)"]
+    return []
+
+
+def kind_problems(env: Any) -> list[str]:
+    """The spec's backend against what the environment is, host-side or JAX."""
+    host = isinstance(env, Vectorizable)
+    if host == env.spec.runs_on_host:
+        return []
+    kind = "host-side (it has vectorize)" if host else "a JAX one"
+    return [
+        f"spec.backend is {env.spec.backend!r}, but the environment is {kind}: "
+        "the backend is 'host' exactly for host-side environments, whose state no checkpoint holds"
+    ]
+
+
+def first_step_shapes(env: Any) -> list[str]:
+    """The shapes and dtypes of a reset and a step of a JAX environment (batched or not), traced."""
+    spec = env.spec
+    batch = (env.num_envs,) if isinstance(env, BatchedEnv) else ()
+
+    def first_steps(key: jax.Array) -> tuple[TimeStep, TimeStep]:
+        state, first = env.reset(key)
+        _, after = env.step(state, random_actions(spec, key, batch))
+        return first, after
+
+    first, after = jax.eval_shape(first_steps, jax.random.PRNGKey(0))
+    return timestep_problems(first, spec, batch, "reset(key)") + timestep_problems(after, spec, batch, "step(state, action)")
 
 
 def _guarded(what: str, check: Callable[[], list[str]]) -> list[str]:
@@ -104,7 +148,7 @@ def timestep_problems(ts: TimeStep, spec: EnvSpec, batch: tuple[int, ...], where
             found.append((field, f"has dtype {value.dtype}; it must be bool"))
         if not flag and not jnp.issubdtype(value.dtype, jnp.floating):
             found.append((field, f"has dtype {value.dtype}; it must be a floating dtype"))
-        elif not flag and not bool(np.isfinite(np.asarray(value)).all()):
+        elif not flag and not isinstance(value, jax.ShapeDtypeStruct) and not bool(np.isfinite(np.asarray(value)).all()):
             found.append((field, "is not finite (NaN or inf)"))
     # final_obs is mostly obs again: its problem is told only when it is not obs's.
     of_obs = {what for field, what in found if field == "obs"}

@@ -1,0 +1,250 @@
+"""Nothing trained on silently wrong state: running statistics that overflow, environments whose
+spec lies, a resume on another layout or from a hand-edited config.json, and timings that count
+training only. On the point mass of tests/test_reliability.py."""
+
+# ruff: noqa: F811 (the tests take test_reliability's fixtures, imported below, as arguments)
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+import jax.numpy as jnp
+import pytest
+from point_mass import PointMass
+from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
+from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
+
+from rpo_jax import envs, runner, train
+from rpo_jax.envs import registry
+from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
+
+ROOT = Path(__file__).resolve().parents[1]
+HUGE = 1e30  # finite in float32, but its square (a variance) is not
+
+
+class Huge(PointMass):
+    """The point mass with its observation or its reward times 1e30: finite numbers whose
+    running variance overflows float32."""
+
+    def __init__(self, quantity: str) -> None:
+        self.quantity = quantity
+
+    def scaled(self, ts):
+        if self.quantity == "observation":
+            return ts.replace(obs=ts.obs * HUGE, final_obs=ts.final_obs * HUGE)
+        return ts.replace(reward=ts.reward * HUGE + HUGE)
+
+    def reset(self, key):
+        state, ts = super().reset(key)
+        return state, self.scaled(ts)
+
+    def step(self, state, action):
+        state, ts = super().step(state, action)
+        return state, self.scaled(ts)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def state_envs(test_envs):
+    for quantity in ("observation", "reward"):
+        envs.register_env(f"test/huge_{quantity}", lambda q=quantity: Huge(q), PointMass.spec)
+    yield
+    for quantity in ("observation", "reward"):
+        registry._REGISTRY.pop(f"test/huge_{quantity}", None)
+
+
+# --------------------------------------------------------------------------------------------
+# Item 4: a running statistic that overflows stops the run
+
+
+@pytest.mark.parametrize(
+    "quantity, statistic",
+    [
+        ("observation", "observation normaliser's var (obs_stats.var)"),
+        ("reward", "reward normaliser's var (return_stats.var)"),
+    ],
+)
+def test_a_huge_finite_value_that_overflows_a_normaliser_stops_the_run(tmp_path, capsys, quantity, statistic):
+    out = tmp_path / "run"
+    flags = ["--env", f"test/huge_{quantity}", *TINY_FLAGS_ANY_ENV, "--checkpoint-every", "0"]
+    assert train.main([*flags, "--out", str(out)]) == 1
+    line = one_line(capsys)
+    assert line.startswith(f"error: training diverged: non-finite {statistic} at update 1 in run 0 "), line
+    assert line.endswith(f"{out} removed (no checkpoint to resume)"), line
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 7: a hand-edited config.json is checked as the flags are, and against the checkpoint
+
+
+def edit_config(out: Path, part: str, **changes) -> None:
+    path = out / CONFIG_FILE
+    record = json.loads(path.read_text())
+    record[part].update(changes)
+    path.write_text(json.dumps(record))
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("plan", {"seed": 2**40}, "--seed must give seeds in [0, 2**32 - 1 = 4294967295] (the PRNG key's range), got seeds"),
+        ("plan", {"seed": "x"}, "seed must be int, got 'x'"),
+        ("plan", {"seed": True}, "seed must be int, got True"),
+        ("plan", {"num_seeds": 0}, "--num-seeds must be >= 1, got 0"),
+        ("plan", {"log_every": 0}, "--log-every must be >= 1, got 0"),
+        ("plan", {"checkpoint_every": -5}, "--checkpoint-every must be >= 0 (0: never), got -5"),
+        ("plan", {"eval_every": -100}, "--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got -100, 10"),
+        ("plan", {"devices": "all"}, "devices must be int or null, got 'all'"),
+        ("plan", {"sweep": ["lr=x"]}, "--sweep lr=x: values must be numbers separated by commas"),
+    ],
+)
+def test_resume_refuses_a_config_json_plan_that_the_flags_would_refuse(unfinished, capsys, part, changes, message):
+    edit_config(unfinished, part, **changes)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {unfinished}: config.json's plan is not one the flags allow: {message}"), line
+    assert not (unfinished / SUMMARY_FILE).exists()
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("config", {"lr": 0.002}, "config.json's lr is 0.002, but the checkpoint at update 19 was trained with 0.001"),
+        ("config", {"gamma": 0.9}, "config.json's gamma is 0.9, but the checkpoint at update 19 was trained with 0.99"),
+        ("plan", {"seed": 7}, "config.json's seed is 7, but the checkpoint at update 19 was trained with 1"),
+    ],
+)
+def test_resume_refuses_a_config_json_that_differs_from_the_checkpoint(unfinished, capsys, part, changes, message):
+    edit_config(unfinished, part, **changes)
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {unfinished}: {message}; a run continues with"), line
+    assert not (unfinished / SUMMARY_FILE).exists()
+
+
+def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unfinished, capsys):
+    # As one saved before checkpoints recorded them: continued, exactly.
+    for checkpoint in (unfinished / "checkpoints").glob("[0-9]*"):
+        path = checkpoint / "record" / "metadata"
+        record = json.loads(path.read_text())
+        old = {name: record[name] for name in ("update", "metrics_bytes", "train_seconds")}
+        assert "trained_with" in record
+        path.write_text(json.dumps(old))
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 17: steps/s and train_seconds count training only
+
+
+def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out(tmp_path, monkeypatch):
+    # Evaluations and checkpoints made slow (2 s and 1 s each) against a training of 20 tiny
+    # updates that takes well under a second: counted in train_seconds, they would dominate it.
+    def slow(name, seconds):
+        function = getattr(runner, name)
+
+        def slowed(*args, **kwargs):
+            result = function(*args, **kwargs)
+            if result is not None or name == "save_checkpoint":  # an evaluation was due, or a checkpoint
+                time.sleep(seconds)
+            return result
+
+        monkeypatch.setattr(runner, name, slowed)
+
+    slow("evaluate_after_chunk", 2.0)
+    slow("save_checkpoint", 1.0)
+    out = tmp_path / "run"
+    every = NUM_ENVS * NUM_STEPS
+    flags = [*TINY_FLAGS, "--eval-every", str(10 * every), "--eval-episodes", "2", "--checkpoint-every", str(5 * every)]
+    assert train.main([*flags, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["eval_seconds"] >= 2 * 2.0 and summary["checkpoint_seconds"] >= 3 * 1.0, summary
+    assert summary["train_seconds"] < 3.0, summary
+    assert summary["sps"] == summary["total_timesteps"] / summary["train_seconds"]
+    rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
+    assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
+
+
+# --------------------------------------------------------------------------------------------
+# Item 6: a resume on another layout is refused unless asked for
+
+
+def train_on_cpu_devices(count: int, *args: str) -> subprocess.CompletedProcess:
+    """`python -m rpo_jax.train ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
+    as JAX starts), where the point mass is importable as point_mass:PointMass."""
+    environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
+    environment |= {"PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
+    command = [sys.executable, "-m", "rpo_jax.train", *args, "--cpu-devices", str(count)]
+    return subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
+
+
+def test_a_resume_on_another_device_count_is_refused_unless_allowed(tmp_path, capsys):
+    out = tmp_path / "run"
+    flags = ["--env", "point_mass:PointMass", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2", "--checkpoint-every", "1024"]
+    trained = train_on_cpu_devices(2, *flags, "--out", str(out))
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    (out / SUMMARY_FILE).unlink()  # as if killed after its last checkpoint; this process has one device
+    assert train.main(["--resume", str(out), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line == (
+        f"error: --resume {out}: the run was trained by 1 process(es) on 2 device(s), and would resume by 1 on 1, which is "
+        "not bit-exact; resume on its layout (--devices, --cpu-devices), or add --allow-relayout to continue on this one"
+    )
+    assert not (out / SUMMARY_FILE).exists()
+    assert train.main(["--resume", str(out), "--quiet", "--allow-relayout"]) == 0
+    assert json.loads((out / SUMMARY_FILE).read_text())["devices"] == 1
+
+
+def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
+    assert train.main([*TINY_FLAGS, "--allow-relayout", "--out", str(tmp_path / "run")]) == 2
+    assert one_line(capsys) == "error: --allow-relayout applies to --resume only; a new run trains on the layout it is given"
+    assert not (tmp_path / "run").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Item 5: train checks the spec against a first reset and step before it compiles
+
+
+def lying(spec: envs.EnvSpec):
+    """The point mass under another spec."""
+    return type("Lying", (PointMass,), {"spec": spec})
+
+
+class ShapeError(PointMass):
+    def step(self, state, action):
+        return super().step(state, jnp.concatenate([action, action]) @ jnp.ones((3,)))
+
+
+LIARS = {
+    "bounds": (lying(envs.EnvSpec("bounds", 2, 1, (1.0,), (-1.0,), 50, "jax")),
+               "spec.action_low (1.0,) is not below action_high (-1.0,) everywhere"),
+    "host": (lying(envs.EnvSpec("host", 2, 1, (-1.0,), (1.0,), 50, "host")),
+             "spec.backend is 'host', but the environment is a JAX one: the backend is 'host' exactly for host-side"),
+    "obs-size": (lying(envs.EnvSpec("obs-size", 3, 1, (-1.0,), (1.0,), 50, "jax")),
+                 "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
+    "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
+    "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", LIARS)
+def test_train_refuses_an_environment_whose_spec_lies_before_compiling(tmp_path, capsys, monkeypatch, name):
+    factory, message = LIARS[name]
+    monkeypatch.setitem(registry._REGISTRY, f"test/liar-{name}", registry._Entry(factory, None))
+    out = tmp_path / "run"
+    code = train.main(["--env", f"test/liar-{name}", *TINY_FLAGS_ANY_ENV, "--out", str(out)])
+    if message is None:  # the point mass ignores a second action: nothing to see in a reset and a step
+        assert code == 0
+        return
+    assert code == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --env test/liar-{name}: {message}"), line
+    assert line.endswith(f"; python -m rpo_jax.envs --check test/liar-{name} checks it in full"), line
+    assert not out.exists()
