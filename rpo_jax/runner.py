@@ -33,6 +33,7 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import devices, envs, ppo
+from rpo_jax.envs import registry
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.devices import is_primary, make_placement
@@ -208,6 +209,8 @@ def resumed_plan(out: Path) -> RunPlan:
         raise UsageError(f"--resume {out}: {error}") from None
     except (KeyError, TypeError) as error:
         raise UsageError(f"--resume {out}: config.json was not written by rpo_jax.train (its plan lacks {error})") from None
+    # Before anything builds the environment: config.json's env is never code from inside the run directory.
+    registry.check_import_outside(plan["env"], out)
     try:
         check_saved_plan(plan, config)
     except UsageError as error:

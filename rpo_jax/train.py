@@ -193,9 +193,6 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         plan = runner.resumed_plan(args.resume)
         saved = {**dataclasses.asdict(plan), **dataclasses.asdict(plan.config), "algo": plan.config.algo}
         check_resume(args, given, saved)
-        from rpo_jax.envs.registry import check_import_outside
-
-        check_import_outside(plan.env, plan.out)  # config.json's env: never code from inside the run directory
         return dataclasses.replace(plan, allow_relayout=args.allow_relayout)
     if args.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")

@@ -285,6 +285,12 @@ def no_wandb_credentials(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     monkeypatch.setenv("NETRC", str(tmp_path / "home" / ".netrc"))
     monkeypatch.setenv("WANDB_CONFIG_DIR", str(tmp_path / "home" / "wandb"))
+    yield
+    import wandb
+
+    # W&B keeps the settings (a key, a mode) of its first use in a process-wide singleton: a later
+    # test in this process would inherit them.
+    wandb.teardown()
 
 
 def test_wandb_online_without_credentials_is_refused_before_anything(tmp_path, capsys, monkeypatch, no_wandb_credentials):
@@ -322,12 +328,11 @@ def test_wandb_credentials_are_needed_online_only(monkeypatch, no_wandb_credenti
 def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_credentials, wandb_dir):
     import wandb
 
-    monkeypatch.setenv("WANDB_MODE", "offline")
     if wandb_dir:
         monkeypatch.setenv("WANDB_DIR", str(tmp_path / wandb_dir))
         (tmp_path / wandb_dir).mkdir()
     out = tmp_path / "run"
-    assert train.main([*TINY_FLAGS, "--track", "wandb", "--out", str(out)]) == 0
+    assert train.main([*TINY_FLAGS, "--track", "wandb", "--wandb-mode", "offline", "--out", str(out)]) == 0
     wandb.teardown()  # W&B's service has written its files
     root = tmp_path / wandb_dir / "wandb" if wandb_dir else out / "wandb"
     assert [path.relative_to(root).parts[0].startswith("offline-run-") for path in root.rglob("*.wandb")] == [True]
