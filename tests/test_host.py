@@ -262,3 +262,14 @@ def rollout_runs(env, keys, actions):
         return jax.lax.scan(env.step, state, actions)[1]
 
     return runs(keys)
+
+
+def test_a_program_still_stepping_closed_pools_gets_zeros_not_an_error():
+    # An interrupted run closes its pools while another device may still run its last chunk.
+    env = envs.vectorize(host_point_mass(), 2)
+    state, _ = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    step = jax.jit(env.step)
+    assert np.asarray(step(state, jnp.ones((2, 1)))[1].obs).any()
+    env.close()
+    _, ts = step(state, jnp.ones((2, 1)))
+    assert not np.asarray(ts.obs).any() and not np.asarray(ts.reward).any()

@@ -107,6 +107,7 @@ class BatchedHostEnv:
     def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int) -> None:
         self.spec, self.make_simulators, self.num_envs = spec, make_simulators, num_envs
         self.pools: dict[int, HostSimulators] = {}
+        self.closed: set[int] = set()
         self.handles = itertools.count()
         self.in_place = jax.default_backend() == "cpu"
         n, obs_size = num_envs, spec.observation_size
@@ -125,12 +126,19 @@ class BatchedHostEnv:
         """handle [*runs] and action [*runs, N, act]: under `jax.vmap` the runs' steps arrive in
         one call (`runs` empty without it), and their pools are stepped side by side."""
         batch = handle.shape
+        if all(int(h) in self.closed for h in handle.reshape(-1)):
+            # A program still running when its pools were closed (the last chunk of an interrupted
+            # run, on another device): its results are thrown away, so it steps nothing, and
+            # ends without an error that JAX would print at exit.
+            return tuple(np.zeros((*batch, *shape.shape), shape.dtype) for shape in self.step_shapes)
         pools = [self.pools[int(h)] for h in handle.reshape(-1)]
         results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
         return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))
 
     def close(self) -> None:
-        """Closes and drops every pool that `reset` built; their handles are not valid any more."""
+        """Closes and drops every pool that `reset` built; a program still stepping their handles
+        gets zeros from then on."""
+        self.closed.update(self.pools)  # before the pools go: a step in flight finds its handle here
         pools, self.pools = self.pools, {}
         for pool in pools.values():
             pool.close()
