@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import time
+from pathlib import Path
 from typing import Any
 
 from rpo_jax.ppo import Metrics
@@ -28,37 +29,66 @@ def point_label(record: dict[str, Any], run: dict[str, Any]) -> str:
     return "-".join(f"{name}={run['hparams'][name]:g}" for name in record["sweep"])
 
 
+class EventFile:
+    """One run's TensorBoard event file, written in the calling thread: a full disk raises its
+    OSError here, where the runner reports it in one line. (tensorboardX's SummaryWriter writes
+    from a thread of its own, whose failure is a traceback and, its queue full, a hang.)"""
+
+    def __init__(self, directory: Path) -> None:
+        from tensorboardX.event_file_writer import EventsWriter
+
+        directory.mkdir(parents=True, exist_ok=True)
+        self.directory, self.events = directory, EventsWriter(str(directory / "events"))
+
+    def add(self, summary: Any, step: int = 0) -> None:
+        from tensorboardX.proto.event_pb2 import Event
+
+        self.events.write_event(Event(summary=summary, wall_time=time.time(), step=step))
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        from tensorboardX.summary import scalar
+
+        self.add(scalar(tag, value), step)
+
+    def flush(self) -> None:
+        try:
+            self.events.flush()
+        except OSError as error:  # a write's error names no file: name the run's event directory
+            raise OSError(error.errno, error.strerror, str(self.directory)) from error
+
+
 class TensorBoardSink:
     """TensorBoard events, one directory per run, rebuilt from the kept rows on resume: the
     trainer's metrics and steps/s under train/, the evaluation return under eval/, and each
-    run's hyperparameters for TensorBoard's HParams view."""
+    run's hyperparameters for TensorBoard's HParams view. Written and flushed with the rows, so
+    that what metrics.jsonl holds TensorBoard holds."""
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
-        from tensorboardX import SummaryWriter
         from tensorboardX.summary import hparams
 
         shutil.rmtree(run_dir.tensorboard, ignore_errors=True)
-        self.writers = [SummaryWriter(str(run_dir.tensorboard / label)) for label in labels]
+        self.files = [EventFile(run_dir.tensorboard / label) for label in labels]
         record = run_dir.read_config()
-        for writer, run in zip(self.writers, record["runs"]):
+        for file, run in zip(self.files, record["runs"]):
             # The HParams view pairs these values with the runs' scalars of the tags named here.
-            summaries = hparams(run_hyperparameters(record, run), dict.fromkeys(HPARAMS_METRICS, 0.0))
-            for summary in summaries:
-                writer.file_writer.add_summary(summary)
+            for summary in hparams(run_hyperparameters(record, run), dict.fromkeys(HPARAMS_METRICS, 0.0)):
+                file.add(summary)
         self.write(kept_rows)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
-            writer, step = self.writers[row["run"]], row["env_steps"]
+            file, step = self.files[row["run"]], row["env_steps"]
             for name in TENSORBOARD_METRICS:
-                writer.add_scalar(f"train/{name}", row[name], step)
-            writer.add_scalar("train/sps", row["sps"], step)
+                file.add_scalar(f"train/{name}", row[name], step)
+            file.add_scalar("train/sps", row["sps"], step)
             if "eval_return" in row:
-                writer.add_scalar("eval/episode_return", row["eval_return"], step)
+                file.add_scalar("eval/episode_return", row["eval_return"], step)
+        for file in self.files:
+            file.flush()
 
     def close(self) -> None:
-        for writer in self.writers:
-            writer.close()
+        for file in self.files:
+            file.events.close()
 
 
 class ProgressDisplay:

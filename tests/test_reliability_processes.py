@@ -15,6 +15,7 @@ import time
 
 import orbax.checkpoint as ocp
 import pytest
+from tensorboardX.event_file_writer import EventsWriter
 from test_hosts import TINY as CARTPOLE, command, free_port, printed
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
 
@@ -142,6 +143,8 @@ WRITES = {
     "checkpoint, plain Exception": (ocp.CheckpointManager, "save", 4, Exception("tensorstore: Failed writing"), True),
     "params": (RunDir, "write_params", 1, ENOSPC, True),
     "summary": (RunDir, "write_summary", 1, ENOSPC, True),
+    "tensorboard, first rows": (EventsWriter, "flush", 1, ENOSPC, False),
+    "tensorboard, after checkpoints": (EventsWriter, "flush", 5, ENOSPC, True),
 }
 
 
