@@ -16,7 +16,6 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 from __future__ import annotations
 
 import copy
-import os
 import sys
 import warnings
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import TYPE_CHECKING, Sequence
 
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, os_failure, usage_failure
-from rpo_jax.rundir import PARAMS_FILE, RunDir
+from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
 
 # JAX, MuJoCo and the policy are imported by the functions that use them, so that --help is quick.
 if TYPE_CHECKING:
@@ -70,15 +69,9 @@ def record_video(
 
 
 def check_video_path(path: Path) -> None:
-    """Refuses, before any work, a --video file that cannot be written: one that exists, or whose
-    directory is missing or not writable (ffmpeg would fail only after the evaluation, in its own words)."""
-    directory = path.absolute().parent
-    if path.exists() or path.is_symlink():
-        raise UsageError(f"--video {path} already exists; choose a new file")
-    if not directory.is_dir():
-        raise UsageError(f"--video {path}: the directory {directory} does not exist")
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise UsageError(f"--video {path}: the directory {directory} is not writable (read-only file system or no permission)")
+    """Refuses, before any work, a --video file that cannot be written (ffmpeg would fail only
+    after the evaluation, in its own words)."""
+    check_new_file("--video", path)
 
 
 def check_video(env: envs.Env) -> None:

@@ -52,7 +52,7 @@ import numpy as np
 
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, os_failure, usage_failure
-from rpo_jax.rundir import PARAMS_FILE, RunDir
+from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
 
 ACTIVATIONS = {
     "tanh": np.tanh,
@@ -208,13 +208,7 @@ def check_outputs(outputs: dict[str, Path]) -> None:
     if len({path.absolute() for path in outputs.values()}) < len(outputs):
         raise UsageError(f"--onnx and --npz are the same file {outputs['--onnx']}; give each its own")
     for flag, path in outputs.items():
-        directory = path.absolute().parent
-        if path.exists() or path.is_symlink():
-            raise UsageError(f"{flag} {path} already exists; choose a new file")
-        if not directory.is_dir():
-            raise UsageError(f"{flag} {path}: the directory {directory} does not exist")
-        if not os.access(directory, os.W_OK | os.X_OK):
-            raise UsageError(f"{flag} {path}: the directory {directory} is not writable (read-only file system or no permission)")
+        check_new_file(flag, path)
 
 
 def onnx_bytes(arrays: dict[str, np.ndarray]) -> bytes:

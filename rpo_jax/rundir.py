@@ -203,3 +203,16 @@ def sync(metrics: IO[bytes]) -> int:
     """Forces metrics.jsonl to disk and returns its size, for a checkpoint's record."""
     os.fsync(metrics.fileno())
     return metrics.tell()
+
+
+def check_new_file(flag: str, path: Path) -> None:
+    """Refuses, as UsageError, an output file given with `flag` that cannot be written new: one
+    that exists (never overwritten), or whose directory is missing or not writable, so that a
+    command refuses before its work rather than failing after it."""
+    directory = path.absolute().parent
+    if path.exists() or path.is_symlink():
+        raise UsageError(f"{flag} {path} already exists; choose a new file")
+    if not directory.is_dir():
+        raise UsageError(f"{flag} {path}: the directory {directory} does not exist")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise UsageError(f"{flag} {path}: the directory {directory} is not writable (read-only file system or no permission)")
