@@ -44,7 +44,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from rpo_jax import envs, ppo
+from rpo_jax import envs, peers, ppo
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
 
@@ -265,7 +265,8 @@ def join_processes(
             # Flags given in full are the whole layout: JAX's detection would read a cluster job's instead.
             jax.distributed.initialize(
                 coordinator, num_processes, process_id, cluster_detection_method=None if detect else "deactivate",
-                initialization_timeout=timeout + JAX_TIMEOUT_MARGIN, heartbeat_timeout_seconds=timeout,
+                # JAX's heartbeat ends a process with a C++ abort: later than `watch_peers`, which ends it in one line.
+                initialization_timeout=timeout + JAX_TIMEOUT_MARGIN, heartbeat_timeout_seconds=3 * timeout,
                 shutdown_timeout_seconds=timeout,
             )  # fmt: skip
     except (RuntimeError, ValueError) as error:
@@ -273,6 +274,7 @@ def join_processes(
         hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
         hint = hint if detect else ""
         raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
+    peers.watch(coordinator or "of the cluster job", timeout)
     local_counts = sorted({len(_devices_of(process)) for process in range(jax.process_count())})
     if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
         raise UsageError(

@@ -285,12 +285,6 @@ def no_wandb_credentials(tmp_path, monkeypatch):
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     monkeypatch.setenv("NETRC", str(tmp_path / "home" / ".netrc"))
     monkeypatch.setenv("WANDB_CONFIG_DIR", str(tmp_path / "home" / "wandb"))
-    yield
-    import wandb
-
-    # W&B keeps the settings (a key, a mode) of its first use in a process-wide singleton: a later
-    # test in this process would inherit them.
-    wandb.teardown()
 
 
 def test_wandb_online_without_credentials_is_refused_before_anything(tmp_path, capsys, monkeypatch, no_wandb_credentials):
@@ -332,6 +326,8 @@ def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_c
         monkeypatch.setenv("WANDB_DIR", str(tmp_path / wandb_dir))
         (tmp_path / wandb_dir).mkdir()
     out = tmp_path / "run"
+    # The mode by flag: W&B keeps the settings of its first use in this process (an earlier
+    # test's key) in a singleton, over the variables.
     assert train.main([*TINY_FLAGS, "--track", "wandb", "--wandb-mode", "offline", "--out", str(out)]) == 0
     wandb.teardown()  # W&B's service has written its files
     root = tmp_path / wandb_dir / "wandb" if wandb_dir else out / "wandb"
