@@ -29,10 +29,7 @@ from rpo_jax import envs, report
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.config import PRESETS, SWEEPABLE
 from rpo_jax.envs import dmc_tasks
-from rpo_jax.errors import (
-    Diverged, Interrupted, UsageError, diverged_failure, interrupt_failure, os_failure,
-    sigterm_as_interrupt, usage_failure,
-)  # fmt: skip
+from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_json
 from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
 
@@ -355,28 +352,22 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; Ctrl-C and SIGTERM stop it resumably (exit codes 130 and 143)."""
-    with sigterm_as_interrupt():
+    with command_failures(resume_line) as exit:
         return run_command(argv)
+    return exit.code
+
+
+def resume_line(out: object | None) -> str:
+    return "the same command continues the experiment" + ("" if out is None else f" (stopped in {out})")
 
 
 def run_command(argv: Sequence[str] | None) -> int:
-    try:
-        args = build_parser().parse_args(argv)
-        from rpo_jax import devices
+    args = build_parser().parse_args(argv)
+    from rpo_jax import devices
 
-        devices.split_cpu(args.cpu_devices)
-        devices.check_cpu_split(args.cpu_devices)
-        out = run_experiment(args)
-    except UsageError as error:
-        return usage_failure(error)
-    except OSError as error:
-        return os_failure(error, "the same command continues the experiment")
-    except Diverged as error:
-        return diverged_failure(error)
-    except Interrupted as interrupted:
-        return interrupt_failure(interrupted, f" in {interrupted}; the same command continues the experiment")
-    except KeyboardInterrupt as error:
-        return interrupt_failure(error, "; the same command continues the experiment")
+    devices.split_cpu(args.cpu_devices)
+    devices.check_cpu_split(args.cpu_devices)
+    out = run_experiment(args)
     print(f"report: {out / report.REPORT_FILE}")
     return 0
 
