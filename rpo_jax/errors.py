@@ -1,4 +1,5 @@
-"""Bad input, reported the same way by every entry point (one line and exit code 2), and Ctrl-C."""
+"""Bad input, reported the same way by every entry point (one line and exit code 2), and Ctrl-C:
+`run_cli` maps each failure of a command to its line and exit code, for every command."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import contextlib
 import signal
 import sys
 import threading
-from typing import Iterator
+from typing import Callable, Iterator
 
 
 class UsageError(ValueError):
@@ -89,3 +90,40 @@ def os_failure(error: OSError, resume: str = "") -> int:
 def diverged_failure(error: Diverged) -> int:
     print(f"error: {error}", file=sys.stderr)
     return 1
+
+
+
+class ExitCode:
+    """The exit code of a command, set by `command_failures` where the command failed."""
+
+    def __init__(self) -> None:
+        self.code = 0
+
+
+@contextlib.contextmanager
+def command_failures(resume: Callable[[object | None], str] | None = None) -> Iterator[ExitCode]:
+    """Runs a command's body and sets the exit code of the failure it raised, printed as one line:
+    2 for bad input or a failure of the file system, 1 for a diverged run. `resume`, for a command
+    that trains, says what continues its run given the run directory (None: stopped before one
+    was made); with it, SIGTERM stops the body as Ctrl-C does and both exit with 130 or 143 and
+    that line. Without it, Ctrl-C and SIGTERM keep Python's own behaviour. Every command's main:
+
+        with command_failures() as exit:
+            ...
+        return exit.code
+    """
+    exit = ExitCode()
+    with sigterm_as_interrupt() if resume else contextlib.nullcontext():
+        try:
+            yield exit
+        except UsageError as error:
+            exit.code = usage_failure(error)
+        except OSError as error:
+            exit.code = os_failure(error, resume(getattr(error, "out", None)) if resume else "")
+        except Diverged as error:
+            exit.code = diverged_failure(error)
+        except (Interrupted, KeyboardInterrupt) as error:
+            if resume is None:
+                raise
+            out = error.args[0] if isinstance(error, Interrupted) else None  # before a run directory: nothing to continue
+            exit.code = interrupt_failure(error, f"; {resume(out)}")

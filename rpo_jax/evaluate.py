@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, os_failure, usage_failure
+from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
 
 # JAX, MuJoCo and the policy are imported by the functions that use them, so that --help is quick.
@@ -148,7 +148,7 @@ def build_parser() -> ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
+    with command_failures() as exit:
         args = build_parser().parse_args(argv)
         if args.episodes < 1:
             raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
@@ -186,11 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.video:
             total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)
             print(f"video: {args.video} ({length} steps, return {total:.2f})")
-    except UsageError as error:
-        return usage_failure(error)
-    except OSError as error:
-        return os_failure(error)
-    return 0
+    return exit.code
 
 
 if __name__ == "__main__":

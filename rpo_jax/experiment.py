@@ -1,8 +1,8 @@
 """The paper's comparisons as named experiments: a grid of environments x variants x seeds.
 
-    python -m rpo_jax.experiment entropy-reg --envs cartpole --seeds 3 --timesteps 2000000
-    python -m rpo_jax.experiment ppo-vs-rpo --suite gym --seeds 3
-    python -m rpo_jax.experiment long-horizon --timesteps 20000000
+    python -m rpo_jax.experiment entropy-reg --envs cartpole --num-seeds 3 --total-timesteps 2000000
+    python -m rpo_jax.experiment ppo-vs-rpo --suite gym --num-seeds 3
+    python -m rpo_jax.experiment long-horizon --total-timesteps 20000000
 
 Each (environment, job) is one training run (`rpo_jax.runner`): its seeds, and the values of a
 swept hyperparameter where a job has one, train together in one compiled program. Everything goes
@@ -17,24 +17,24 @@ checkpoint in shorter runs, which start again) and the compile time.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import shutil
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
+
+import tyro
 
 from rpo_jax import envs, report
-from rpo_jax.cli import ArgumentParser
-from rpo_jax.config import PRESETS, SWEEPABLE
+from rpo_jax.config import PRESETS, SWEEPABLE, Config
 from rpo_jax.envs import dmc_tasks
-from rpo_jax.errors import (
-    Diverged, Interrupted, UsageError, diverged_failure, interrupt_failure, os_failure,
-    sigterm_as_interrupt, usage_failure,
-)  # fmt: skip
+from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_json
 from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
+from rpo_jax.spec import JOINING_FIELDS, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse
+
+PROG = "python -m rpo_jax.experiment"
 
 SUITES: dict[str, tuple[str, ...]] = {
     "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
@@ -55,6 +55,8 @@ SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") f
 # else with CleanRL's (the `paper` preset).
 TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
 
+# The paper's budget: 8M environment steps per run, 10 seeds per variant.
+PAPER_TIMESTEPS, PAPER_SEEDS = 8_000_000, 10
 ENTROPY_COEFS = (0.0, 0.01, 0.05, 0.5, 1.0, 10.0)
 RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
 
@@ -87,7 +89,7 @@ class Job:
 class Experiment:
     jobs: tuple[Job, ...]
     default_suite: str
-    default_timesteps: int = 8_000_000
+    default_timesteps: int = PAPER_TIMESTEPS
 
 
 PPO, RPO = Job("ppo", "ppo"), Job("rpo", "rpo")
@@ -118,47 +120,48 @@ EXPERIMENTS: dict[str, Experiment] = {
 }
 
 
-def build_parser() -> ArgumentParser:
-    parser = ArgumentParser(
-        prog="python -m rpo_jax.experiment",
-        description="Run one of the paper's comparisons and write results.csv, report.md and figures.",
-    )
-    parser.add_argument("name", choices=sorted(EXPERIMENTS), help="the experiment")
-    where = parser.add_mutually_exclusive_group()
-    where.add_argument("--suite", choices=sorted(SUITES), help="environment suite (default: the experiment's)")
-    where.add_argument("--envs", nargs="+", metavar="ENV", help="environment names instead of a suite")
-    parser.add_argument("--jobs", nargs="+", metavar="JOB", help="only these of the experiment's jobs (default: all)")
-    parser.add_argument("--seeds", type=int, default=10, help="seeds per variant (default 10, as the paper)")
-    parser.add_argument(
-        "--timesteps", type=int,
-        help="environment steps per run (default 8M as the paper; 100M for long-horizon)",
-    )  # fmt: skip
-    parser.add_argument("--num-envs", type=int, help="parallel environments per run (default: the preset's)")
-    parser.add_argument(
-        "--num-steps", type=int,
-        help="rollout length per environment (default: the preset's); with --num-envs, keeps the paper's batch of 2048",
-    )  # fmt: skip
-    parser.add_argument(
-        "--preset", choices=sorted(PRESETS),
-        help="config for every environment (default: rl_games' for the IsaacGym tasks, paper for the rest)",
-    )  # fmt: skip
-    parser.add_argument("--checkpoint-every", type=int, metavar="STEPS", help="as for rpo_jax.train")
-    parser.add_argument("--eval-every", type=int, default=0, metavar="STEPS", help="as for rpo_jax.train (default 0: never)")
-    parser.add_argument("--eval-episodes", type=int, default=10, metavar="N", help="as for rpo_jax.train (default 10)")
-    parser.add_argument("--track", choices=["wandb"], help="also log to W&B, grouped by NAME/ENV/JOB")
-    parser.add_argument("--wandb-project", default="rpo_jax", help="W&B project (default rpo_jax)")
-    parser.add_argument("--wandb-entity", help="W&B entity (default: W&B's)")
-    parser.add_argument("--wandb-mode", choices=["online", "offline"], help="W&B mode (default: WANDB_MODE, else online)")
-    parser.add_argument("--no-compile-cache", action="store_true", help="as for rpo_jax.train")
-    parser.add_argument(
-        "--cpu-devices", type=int, metavar="N", help="as for rpo_jax.train: each job's runs (seeds x sweep points) split over N",
-    )  # fmt: skip
-    parser.add_argument("--out", type=Path, help="output directory (default experiments/<name>)")
-    parser.add_argument("--quiet", action="store_true", help="no progress display inside each run")
-    return parser
+ExperimentName = Literal[tuple(sorted(EXPERIMENTS))]  # type: ignore[valid-type]
+SuiteName = Literal[tuple(sorted(SUITES))]  # type: ignore[valid-type]
 
 
-def selected_jobs(args: argparse.Namespace) -> tuple[Job, ...]:
+@dataclasses.dataclass(frozen=True)
+class ExperimentArgs:
+    """Run one of the paper's comparisons and write results.csv, report.md and figures. The flags
+    it shares with rpo_jax.train mean the same; config flags, where given, override every job's
+    preset. By default 10 seeds and 8M steps per run, as the paper (100M for long-horizon)."""
+
+    name: tyro.conf.Positional[ExperimentName]
+    """the experiment"""
+    suite: SuiteName | None = None
+    """environment suite; None: the experiment's"""
+    envs: tuple[str, ...] | None = None
+    """environment names instead of a suite"""
+    jobs: tuple[str, ...] | None = None
+    """only these of the experiment's jobs; None: all"""
+    config: tyro.conf.OmitArgPrefixes[Config] = Config(total_timesteps=PAPER_TIMESTEPS)
+    preset: PresetName | None = None
+    """config for every environment; None: rl_games' for the IsaacGym tasks, paper for the rest"""
+    run: tyro.conf.OmitArgPrefixes[RunSpec] = RunSpec(num_seeds=PAPER_SEEDS)
+    processes: tyro.conf.OmitArgPrefixes[Processes] = Processes()
+    tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
+    # The flags given (`spec.given_fields`): the config fields given override the presets'.
+    given: tyro.conf.Suppress[frozenset[str]] = frozenset()
+
+
+# Flags of rpo_jax.train that an experiment refuses: its jobs sweep, and it trains in one process.
+NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
+# The run's and the processes' fields that experiment.json records only where given, so that
+# experiments recorded before they could be given continue.
+RECORDED_WHERE_GIVEN = {"seed": 1, "log_every": None, "devices": None, "shard_envs": False}
+
+
+def parse_args(argv: Sequence[str]) -> ExperimentArgs:
+    """The flags as ExperimentArgs; bad input raises UsageError with tyro's message as one line."""
+    args = parse(ExperimentArgs, argv, None, PROG)
+    return dataclasses.replace(args, given=frozenset(given_fields(argv)))
+
+
+def selected_jobs(args: ExperimentArgs) -> tuple[Job, ...]:
     """The experiment's jobs that --jobs names, in the experiment's order; all without it."""
     jobs = EXPERIMENTS[args.name].jobs
     if not args.jobs:
@@ -169,35 +172,61 @@ def selected_jobs(args: argparse.Namespace) -> tuple[Job, ...]:
     return tuple(job for job in jobs if job.name in args.jobs)
 
 
-def resolve(args: argparse.Namespace) -> dict:
-    """The experiment's full definition, as recorded in experiment.json."""
-    experiment = EXPERIMENTS[args.name]
-    env_names = list(args.envs or SUITES[args.suite or experiment.default_suite])
-    for name in env_names:
+def env_names(args: ExperimentArgs) -> list[str]:
+    """The environments of --envs, or of the suite, checked."""
+    if args.envs and args.suite:
+        raise UsageError("--envs and --suite name the environments both; give one")
+    names = list(args.envs or SUITES[args.suite or EXPERIMENTS[args.name].default_suite])
+    for name in names:
         envs.env_spec(name)  # registered names, gymnasium/<id> and import paths; else a one-line error
-    repeated = sorted({name for name in env_names if env_names.count(name) > 1})
+    repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
         raise UsageError(f"--envs names {', '.join(repeated)} more than once; give each environment once")
-    check_directory_names(env_names)
-    if args.seeds < 1:
-        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
-    for flag in ("timesteps", "num_envs", "num_steps"):
-        if getattr(args, flag) is not None and getattr(args, flag) < 1:
-            raise UsageError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    check_directory_names(names)
+    return names
+
+
+def config_overrides(args: ExperimentArgs, jobs: Sequence[Job]) -> dict[str, Any]:
+    """The config fields given, which override every job's preset; refuses the flags an
+    experiment does not take and the fields that its jobs set."""
+    for name in sorted(args.given & set(NOT_FOR_EXPERIMENTS)):
+        raise UsageError(f"{flag(name)} is rpo_jax.train's: an experiment's jobs choose algorithm and sweeps, in one process")
+    for name in sorted(args.given & {name for job in jobs for name, _ in job.config}):
+        raise UsageError(f"{flag(name)}: {args.name}'s jobs set it; it tells them apart")
+    fields = {field.name for field in dataclasses.fields(Config)} - {"total_timesteps"}
+    return {name: getattr(args.config, name) for name in sorted(args.given & fields)}
+
+
+def resolve(args: ExperimentArgs) -> dict:
+    """The experiment's full definition, as recorded in experiment.json."""
+    jobs = selected_jobs(args)
+    timesteps = args.config.total_timesteps if "total_timesteps" in args.given else EXPERIMENTS[args.name].default_timesteps
+    values = {**vars(args.run), **vars(args.processes)}
     definition = {
         "experiment": args.name,
-        "envs": env_names,
-        "seeds": args.seeds,
-        "timesteps": args.timesteps or experiment.default_timesteps,
-        "num_envs": args.num_envs,
+        "envs": env_names(args),
+        "num_seeds": args.run.num_seeds,
+        "total_timesteps": timesteps,
         "preset": args.preset,
-        "checkpoint_every": args.checkpoint_every,
-        **({"eval_every": args.eval_every, "eval_episodes": args.eval_episodes} if args.eval_every else {}),
-        "jobs": [dataclasses.asdict(job) for job in selected_jobs(args)],
+        "checkpoint_every": args.run.checkpoint_every,
+        **({"eval_every": args.run.eval_every, "eval_episodes": args.run.eval_episodes} if args.run.eval_every else {}),
+        **{name: values[name] for name, default in RECORDED_WHERE_GIVEN.items() if values[name] != default},
+        "config": config_overrides(args, jobs),
+        "jobs": [dataclasses.asdict(job) for job in jobs],
     }
-    if args.num_steps is not None:  # recorded only when given, so that older experiments continue
-        definition["num_steps"] = args.num_steps
     return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
+
+
+def upgraded(saved: dict) -> dict:
+    """A definition read from experiment.json, as this version writes it: those written before
+    the experiment took rpo_jax.train's flags named the seeds and the steps `seeds` and
+    `timesteps`, and held num_envs and num_steps (the config fields they could give) apart."""
+    if "seeds" not in saved:
+        return saved
+    saved = dict(saved)
+    given = {name: saved.pop(name, None) for name in ("num_envs", "num_steps")}
+    saved["num_seeds"], saved["total_timesteps"] = saved.pop("seeds"), saved.pop("timesteps")
+    return {**saved, "config": {name: value for name, value in given.items() if value is not None}}
 
 
 def env_directory(env: str) -> str:
@@ -226,7 +255,7 @@ def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
     experiment.json into a new one where `write`."""
     record = out / "experiment.json"
     if record.is_file():
-        saved = json.loads(record.read_text())
+        saved = upgraded(json.loads(record.read_text()))
         if saved != definition:
             changed = sorted(k for k in definition.keys() | saved.keys() if saved.get(k) != definition.get(k))
             raise UsageError(
@@ -244,41 +273,44 @@ def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
 def job_config(definition: dict, env: str, job: Job) -> tuple[str, Any]:
     """The preset and the config of `job`'s run on `env`."""
     preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
-    overrides = {"algo": job.algo, **dict(job.config), "total_timesteps": definition["timesteps"]}
-    for name in ("num_envs", "num_steps"):
-        if definition.get(name):
-            overrides[name] = definition[name]
+    overrides = {"algo": job.algo, **dict(job.config), **definition["config"], "total_timesteps": definition["total_timesteps"]}
+    if "hidden_sizes" in overrides:
+        overrides["hidden_sizes"] = tuple(overrides["hidden_sizes"])  # JSON's list, as the flag gives it
     return preset, dataclasses.replace(PRESETS[preset], **overrides)
+
+
+def job_run(definition: dict, job: Job, directory: Path | None) -> RunSpec:
+    """The spec of `job`'s run in `directory`."""
+    names = (field.name for field in dataclasses.fields(RunSpec))  # eval_every and RECORDED_WHERE_GIVEN's may be absent
+    given = {name: definition[name] for name in names if name in definition}
+    return RunSpec(out=directory, sweep=tuple(job.sweep_specs()), **given)
 
 
 def check_jobs(definition: dict, jobs: Sequence[Job]) -> None:
     """Refuses, before the experiment writes anything, a definition that one of its runs would refuse."""
-    from rpo_jax import runner
+    from rpo_jax import plan
 
     for env in definition["envs"]:
         for job in jobs:
             _, config = job_config(definition, env, job)
             try:
-                runner.check_plan(env, config, 1, definition["seeds"], job.sweep_specs(), None, definition["checkpoint_every"])
+                plan.check_new(env, config, job_run(definition, job, None))
             except UsageError as error:
                 raise UsageError(f"{env} {job.name}: {error}") from None
 
 
 def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
-    """The training run of `job` on `env`, as a runner plan."""
-    from rpo_jax import runner
+    """The training run of `job` on `env`, as a plan."""
+    from rpo_jax import plan
 
     preset, config = job_config(definition, env, job)
-    return runner.new_plan(
-        out=directory, env=env, config=config, preset=preset, seed=1, num_seeds=definition["seeds"],
-        sweep=job.sweep_specs(), checkpoint_every=definition["checkpoint_every"],
-        eval_every=definition.get("eval_every", 0), eval_episodes=definition.get("eval_episodes", 10),
-    )  # fmt: skip
+    processes = Processes(devices=definition.get("devices"), shard_envs=definition.get("shard_envs", False))
+    return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset)
 
 
-def run_experiment(args: argparse.Namespace) -> Path:
+def run_experiment(args: ExperimentArgs) -> Path:
     definition = resolve(args)
-    out = args.out or Path("experiments") / args.name
+    out = args.run.out or Path("experiments") / args.name
     jobs = selected_jobs(args)  # experiment.json holds the same, prepare_out checks it
     check_jobs(definition, jobs)
     prepare_out(out, definition, write=False)  # refused before the lock creates the directory
@@ -289,11 +321,11 @@ def run_experiment(args: argparse.Namespace) -> Path:
     return out
 
 
-def run_jobs(args: argparse.Namespace, out: Path, definition: dict, jobs: Sequence[Job]) -> None:
+def run_jobs(args: ExperimentArgs, out: Path, definition: dict, jobs: Sequence[Job]) -> None:
     """Every (environment, job) run not finished yet, resumed where it started; results.csv
     after each."""
-    from rpo_jax import runner
-    from rpo_jax.train import TrainArgs, train_with_display
+    from rpo_jax import plan
+    from rpo_jax.train import train_with_display
 
     total = len(definition["envs"]) * len(jobs)
     for index, (env, job) in enumerate(((env, job) for env in definition["envs"] for job in jobs), start=1):
@@ -303,18 +335,15 @@ def run_jobs(args: argparse.Namespace, out: Path, definition: dict, jobs: Sequen
             print(f"{prefix}: finished earlier", flush=True)
             continue
         if RunDir(directory).has_config():
-            plan = runner.resumed_plan(directory)
+            run_plan = plan.resumed_plan(directory)
             print(f"{prefix}: resuming", flush=True)
         else:
             # Killed before its config was written: nothing of the run exists yet.
             shutil.rmtree(directory, ignore_errors=True)
-            plan = job_plan(definition, env, job, directory)
+            run_plan = job_plan(definition, env, job, directory)
             print(f"{prefix}: training", flush=True)
-        tools = TrainArgs(
-            track=args.track, wandb_project=args.wandb_project, wandb_entity=args.wandb_entity, wandb_mode=args.wandb_mode,
-            wandb_group=f"{args.name}/{env}/{job.name}", compile_cache=not args.no_compile_cache,
-        )  # fmt: skip
-        summary = train_with_display(plan, args.quiet, tools)
+        group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
+        summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)
         print(progress_line(prefix, job, summary), flush=True)
         report.write_results(out, collect_rows(out, definition, jobs))
 
@@ -355,28 +384,22 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; Ctrl-C and SIGTERM stop it resumably (exit codes 130 and 143)."""
-    with sigterm_as_interrupt():
+    with command_failures(resume_line) as exit:
         return run_command(argv)
+    return exit.code
+
+
+def resume_line(out: object | None) -> str:
+    return "the same command continues the experiment" + ("" if out is None else f" (stopped in {out})")
 
 
 def run_command(argv: Sequence[str] | None) -> int:
-    try:
-        args = build_parser().parse_args(argv)
-        from rpo_jax import devices
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    from rpo_jax import devices
 
-        devices.split_cpu(args.cpu_devices)
-        devices.check_cpu_split(args.cpu_devices)
-        out = run_experiment(args)
-    except UsageError as error:
-        return usage_failure(error)
-    except OSError as error:
-        return os_failure(error, "the same command continues the experiment")
-    except Diverged as error:
-        return diverged_failure(error)
-    except Interrupted as interrupted:
-        return interrupt_failure(interrupted, f" in {interrupted}; the same command continues the experiment")
-    except KeyboardInterrupt as error:
-        return interrupt_failure(error, "; the same command continues the experiment")
+    devices.split_cpu(args.processes.cpu_devices)
+    devices.check_cpu_split(args.processes.cpu_devices)
+    out = run_experiment(args)
     print(f"report: {out / report.REPORT_FILE}")
     return 0
 

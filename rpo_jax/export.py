@@ -51,7 +51,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, os_failure, usage_failure
+from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
 
 ACTIVATIONS = {
@@ -171,7 +171,7 @@ def build_parser() -> ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
+    with command_failures() as exit:
         args = build_parser().parse_args(argv)
         run_dir = RunDir(args.run_dir)
         if not run_dir.has_params():
@@ -193,11 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for flag, path in outputs.items():
             if path is not None:
                 print(f"{flag[2:]}: {path}")
-    except UsageError as error:
-        return usage_failure(error)
-    except OSError as error:
-        return os_failure(error)
-    return 0
+    return exit.code
 
 
 def check_outputs(outputs: dict[str, Path]) -> None:

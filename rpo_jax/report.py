@@ -28,7 +28,7 @@ import numpy as np
 
 from rpo_jax import aggregate, figures, reference
 from rpo_jax.cli import ArgumentParser
-from rpo_jax.errors import UsageError, os_failure, usage_failure
+from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
@@ -444,7 +444,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="published figures to set beside ours (env, algo, mean, std, seeds, budget, source), "
         "e.g. benchmarks/reference/cleanrl_rpo_8m.csv",
     )  # fmt: skip
-    try:
+    with command_failures() as exit:
         args = parser.parse_args(argv)
         if args.out is None and len(args.dirs) > 1:
             raise UsageError("--out is needed when overlaying several directories")
@@ -453,12 +453,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             path = build_run(run_dir, args.out or args.dirs[0])
         else:
             path = build(args.out or args.dirs[0], args.dirs, args.reference)
-    except UsageError as error:
-        return usage_failure(error)
-    except OSError as error:
-        return os_failure(error)
-    print(f"report: {path}")
-    return 0
+        print(f"report: {path}")
+    return exit.code
 
 
 if __name__ == "__main__":

@@ -265,7 +265,7 @@ def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):
     from rpo_jax import experiment, train
 
     jax.numpy.zeros(()).block_until_ready()  # JAX's backends started in this process
-    tiny_experiment = ["ppo-vs-rpo", "--envs", "cartpole", "--seeds", "1", "--timesteps", "64", "--num-envs", "8"]
+    tiny_experiment = ["ppo-vs-rpo", "--envs", "cartpole", "--num-seeds", "1", "--total-timesteps", "64", "--num-envs", "8"]
     for value, message in (("0", "--cpu-devices must be >= 1, got 0"), ("2", "must come before JAX's first computation")):
         assert train.main([*TINY_COMMAND, "--cpu-devices", value, "--out", str(tmp_path / "run")]) == 2
         assert experiment.main([*tiny_experiment, "--cpu-devices", value, "--out", str(tmp_path / "experiment")]) == 2
@@ -275,10 +275,11 @@ def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):
 
 
 def test_resume_takes_cpu_devices_as_it_takes_the_process_flags():
+    from rpo_jax.spec import Processes
     from rpo_jax.train import TrainArgs, check_resume
 
     saved = {"devices": None}  # what a run records of where it trained: --cpu-devices is not part of the run
-    check_resume(TrainArgs(resume=Path("runs/x"), cpu_devices=4), {"cpu_devices", "resume"}, saved)
+    check_resume(TrainArgs(resume=Path("runs/x"), processes=Processes(cpu_devices=4)), {"cpu_devices", "resume"}, saved)
 
 
 def test_cpu_devices_refused_where_jax_trains_on_a_gpu(monkeypatch):

@@ -3,6 +3,7 @@
 import csv
 import json
 import random
+import re
 import shutil
 import subprocess
 import sys
@@ -15,12 +16,13 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
+from rpo_jax import plan as plan_module
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import CHECKPOINT_DIR, LOCK_FILE, PARAMS_FILE
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
 TINY = [
-    "--envs", "cartpole", "--seeds", "2", "--timesteps", "12800", "--num-envs", "8",
+    "--envs", "cartpole", "--num-seeds", "2", "--total-timesteps", "12800", "--num-envs", "8",
     "--checkpoint-every", "1280", "--quiet",
 ]  # fmt: skip
 EXPERIMENT_CMD = [sys.executable, "-m", "rpo_jax.experiment", "ppo-vs-rpo", *TINY]
@@ -76,18 +78,18 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
         "truncation": 4,
     }  # fmt: skip
     for name, spec in experiment.EXPERIMENTS.items():
-        definition = experiment.resolve(experiment.build_parser().parse_args([name, "--envs", "cartpole"]))
-        assert definition["timesteps"] == (100_000_000 if name == "long-horizon" else 8_000_000)
+        definition = experiment.resolve(experiment.parse_args([name, "--envs", "cartpole"]))
+        assert definition["total_timesteps"] == (100_000_000 if name == "long-horizon" else 8_000_000)
         variants = []
         for job in spec.jobs:
             plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name)
             assert plan.num_seeds == 10 and plan.config.num_envs == 512  # the isaacgym preset
             assert plan.config.algo == job.algo
-            grid = runner.parse_sweeps(plan.sweep, plan.config)
-            variants += [job.variant(run["hparams"]) for run in runner.describe_runs(plan, grid)]
+            grid = plan_module.parse_sweeps(plan.sweep, plan.config)
+            variants += [job.variant(run["hparams"]) for run in plan_module.describe_runs(plan, grid)]
         assert len(set(variants)) == expected_variants[name], (name, variants)
     # BallBalance trains with rl_games' BallBalance config, not Cartpole's.
-    definition = experiment.resolve(experiment.build_parser().parse_args(["long-horizon", "--envs", "ballbalance"]))
+    definition = experiment.resolve(experiment.parse_args(["long-horizon", "--envs", "ballbalance"]))
     plan = experiment.job_plan(definition, "ballbalance", experiment.RPO, tmp_path / "bb")
     assert plan.config.hidden_sizes == (128, 64, 32) and plan.config.num_envs == 4096 and plan.config.normalize_value
     assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
@@ -119,7 +121,7 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
 
     before = files()
     with pytest.raises(UsageError, match="does not match the config"):
-        runner.train(runner.resumed_plan(tampered))
+        runner.train(plan_module.resumed_plan(tampered))
     assert files() == before
     argv = ["--resume", str(tampered), "--env", "brax/ant"]
     with pytest.raises(UsageError, match="made with --env cartpole, not brax/ant"):
@@ -168,10 +170,10 @@ def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_pat
 def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
     cases = [
         (["ppo-vs-rpo", "--envs", "nowhere"], "unknown env 'nowhere'"),
-        (["ppo-vs-rpo", "--envs", "cartpole", "--seeds", "0"], "--seeds must be >= 1"),
+        (["ppo-vs-rpo", "--envs", "cartpole", "--num-seeds", "0"], "--num-seeds must be >= 1"),
         (["no-such-experiment"], "invalid choice"),
         # The same directory with another definition: never mixed, never overwritten.
-        (["ppo-vs-rpo", *TINY[:-1], "--seeds", "3", "--out", str(uninterrupted)], "holds a different experiment"),
+        (["ppo-vs-rpo", *TINY[:-1], "--num-seeds", "3", "--out", str(uninterrupted)], "holds a different experiment"),
     ]
     for argv, message in cases:
         capsys.readouterr()
@@ -237,7 +239,7 @@ def test_five_random_kills_leave_the_same_results(uninterrupted, tmp_path):
 
 def test_jobs_picks_some_of_an_experiments_jobs_and_refuses_unknown_ones(capsys):
     argv = ["truncation", "--suite", "reference", "--jobs", "rpo-terminate", "ppo-terminate"]
-    args = experiment.build_parser().parse_args(argv)
+    args = experiment.parse_args(argv)
     definition = experiment.resolve(args)
     assert [job["name"] for job in definition["jobs"]] == ["ppo-terminate", "rpo-terminate"]  # the experiment's order
     assert all(dict(job["config"])["truncation"] == "terminate" for job in definition["jobs"])
@@ -245,3 +247,38 @@ def test_jobs_picks_some_of_an_experiments_jobs_and_refuses_unknown_ones(capsys)
     assert experiment.main(["truncation", "--envs", "cartpole", "--jobs", "rpo-forever"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--jobs rpo-forever: truncation has jobs ppo-bootstrap" in err
+
+
+def help_flags(module: str) -> set[str]:
+    result = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    return set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", result.stdout)) - {"--help"}
+
+
+def test_experiment_and_train_share_their_flags_by_name():
+    trains, experiments = help_flags("rpo_jax.train"), help_flags("rpo_jax.experiment")
+    # What they share has one name; each has only its own besides (no --seeds for --num-seeds).
+    assert experiments - trains == {"--suite", "--envs", "--jobs"}
+    assert trains - experiments == {"--env", "--resume", "--allow-relayout", "--no-allow-relayout"}
+    for name in ("--num-seeds", "--total-timesteps", "--num-envs", "--num-steps", "--eval-every", "--eval-episodes",
+                 "--cpu-devices", "--quiet", "--out", "--checkpoint-every", "--preset", "--no-compile-cache", "--track"):
+        assert name in trains & experiments, name
+
+
+def test_an_experiment_recorded_with_the_old_flag_names_continues(uninterrupted, tmp_path, capsys):
+    out = tmp_path / "ppo-vs-rpo"
+    shutil.copytree(uninterrupted, out)
+    jobs = [{"name": job, "algo": job, "config": [], "sweep": None} for job in JOBS]
+    # experiment.json as written before the experiment took train's flags (--seeds, --timesteps).
+    old = {
+        "experiment": "ppo-vs-rpo", "envs": ["cartpole"], "seeds": 2, "timesteps": 12800, "num_envs": 8,
+        "preset": None, "checkpoint_every": 1280, "jobs": jobs,
+    }  # fmt: skip
+    (out / "experiment.json").write_text(json.dumps(old))
+    capsys.readouterr()
+    assert experiment.main(["ppo-vs-rpo", *TINY, "--out", str(out)]) == 0
+    assert capsys.readouterr().out.count("finished earlier") == 2
+    assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
+    (out / "experiment.json").write_text(json.dumps({**old, "num_envs": None}))  # another experiment
+    assert experiment.main(["ppo-vs-rpo", *TINY, "--out", str(out)]) == 2
+    assert "holds a different experiment (differs in config)" in capsys.readouterr().err

@@ -20,11 +20,12 @@ import numpy as np
 import pytest
 from point_mass import PointMass
 
-from rpo_jax import envs, evaluate, experiment, report, runner, train
+from rpo_jax import envs, evaluate, experiment, records, report, runner, train
 from rpo_jax.checkpoint import CheckpointDamaged, Checkpointer
 from rpo_jax.config import Config
 from rpo_jax.envs import registry
 from rpo_jax.errors import Diverged, UsageError
+from rpo_jax.plan import RunPlan
 from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir, hold_lock, write_rows
 
 NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
@@ -151,11 +152,11 @@ def test_an_out_under_a_file_or_not_writable_is_refused(tmp_path, capsys, monkey
 
 def test_env_steps_are_counted_in_64_bits():
     config = dataclasses.replace(TINY, num_envs=2**16, num_steps=2**12, num_minibatches=1, total_timesteps=2**28 * 64)
-    plan = runner.RunPlan(Path("x"), "cartpole", None, 1, 1, (), config, log_every=1, checkpoint_every=0)
+    plan = RunPlan(Path("x"), "cartpole", None, 1, 1, (), config, log_every=1, checkpoint_every=0)
     metrics = {name: np.zeros((1, 1)) for name in ("env_steps", "episode_return", "episodes_finished")}
     metrics["env_steps"][:] = -(2**31)  # what the trainer's int32 count holds at 2**31 steps
     runs = [{"seed": 1, "hparams": {}}]
-    [row] = runner.logged_rows(plan, runs, SimpleNamespace(**metrics), first_update=16, chunk=1, sps=0.0)
+    [row] = records.logged_rows(plan, runs, SimpleNamespace(**metrics), first_update=16, chunk=1, sps=0.0)
     assert row["env_steps"] == 17 * 2**28 > 2**32
 
 
@@ -203,9 +204,9 @@ def test_first_nonfinite_names_the_first_update_and_run():
     diagnostics = SimpleNamespace(
         nonfinite_observations=zeros, nonfinite_rewards=zeros, nonfinite_parameters=parameters, nonfinite_statistics={}
     )
-    assert runner.first_nonfinite(metrics, diagnostics) == (1, 2, ["loss"])
+    assert records.first_nonfinite(metrics, diagnostics) == (1, 2, ["loss"])
     metrics.policy_loss[:] = 0
-    assert runner.first_nonfinite(metrics, diagnostics) == (2, 1, ["parameters"])
+    assert records.first_nonfinite(metrics, diagnostics) == (2, 1, ["parameters"])
 
 
 # --------------------------------------------------------------------------------------------
@@ -601,10 +602,10 @@ def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys
 
 def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
     out = tmp_path / "experiment"
-    base = ["ppo-vs-rpo", "--out", str(out), "--seeds", "1", "--quiet"]
+    base = ["ppo-vs-rpo", "--out", str(out), "--num-seeds", "1", "--quiet"]
     assert experiment.main([*base, "--envs", "test/point_mass", "test/point_mass"]) == 2
     assert "--envs names test/point_mass more than once" in one_line(capsys)
-    assert experiment.main([*base, "--envs", "test/point_mass", "--timesteps", "10"]) == 2
+    assert experiment.main([*base, "--envs", "test/point_mass", "--total-timesteps", "10"]) == 2
     assert "total_timesteps must be at least one batch" in one_line(capsys)
     assert experiment.main([*base, "--envs", "test/point_mas"]) == 2
     assert "did you mean test/point_mass" in one_line(capsys)
@@ -616,8 +617,9 @@ def test_experiment_refuses_envs_that_would_share_a_directory(tmp_path, capsys, 
         (tmp_path / f"{module}.py").write_text(f"from point_mass import PointMass\n{factory} = PointMass\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     out = tmp_path / "experiment"
-    # Refused before the runs are checked (--timesteps 10 is below a batch): without the check, in seconds.
-    args = ["ppo-vs-rpo", "--out", str(out), "--timesteps", "10", "--quiet", "--envs", "test/point_mass", "cola:b_c", "cola_b:c"]
+    # Refused before the runs are checked (--total-timesteps 10 is below a batch): without the check, in seconds.
+    args = ["ppo-vs-rpo", "--out", str(out), "--total-timesteps", "10", "--quiet"]
+    args += ["--envs", "test/point_mass", "cola:b_c", "cola_b:c"]
     assert experiment.main(args) == 2
     line = one_line(capsys)
     assert line == "error: --envs cola:b_c and cola_b:c would share the directory runs/cola_b_c; run them apart", line

@@ -13,7 +13,7 @@ from point_mass import PointMass
 from test_host import SPEC as HOST_SPEC
 from test_host import host_point_mass
 
-from rpo_jax import envs, export, load_policy, runner, train
+from rpo_jax import envs, export, load_policy, plan, runner, train
 from rpo_jax.experiment import Job, progress_line
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
@@ -199,9 +199,9 @@ def test_export_refuses_what_it_cannot_do(tmp_path, capsys):
 
 
 def test_default_checkpoints_only_for_long_runs():
-    assert runner.default_checkpoint_every(1_000_000) == 0
-    assert runner.default_checkpoint_every(runner.CHECKPOINT_MIN_RUN_STEPS) == runner.CHECKPOINT_MIN_RUN_STEPS // 10
-    assert runner.default_checkpoint_every(100_000_000) == 10_000_000
+    assert plan.default_checkpoint_every(1_000_000) == 0
+    assert plan.default_checkpoint_every(plan.CHECKPOINT_MIN_RUN_STEPS) == plan.CHECKPOINT_MIN_RUN_STEPS // 10
+    assert plan.default_checkpoint_every(100_000_000) == 10_000_000
 
 
 def test_compile_cache_lives_under_the_user_cache(monkeypatch, tmp_path):

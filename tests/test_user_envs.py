@@ -178,7 +178,7 @@ def test_check_command_prints_a_line_per_problem_and_exits_1(capsys):
 def test_experiment_takes_import_paths_and_refuses_broken_ones(tmp_path, capsys):
     from rpo_jax import experiment
 
-    args = experiment.build_parser().parse_args(["ppo-vs-rpo", "--envs", EXAMPLE, "gymnasium/HalfCheetah-v5"])
+    args = experiment.parse_args(["ppo-vs-rpo", "--envs", EXAMPLE, "gymnasium/HalfCheetah-v5"])
     assert experiment.resolve(args)["envs"] == [EXAMPLE, "gymnasium/HalfCheetah-v5"]
     assert experiment.run_dir(tmp_path, EXAMPLE, experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]).parent.name == (
         "examples.goal_reach_make_env"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 
-from rpo_jax.errors import UsageError, usage_failure
+from rpo_jax.errors import UsageError, command_failures
 
 USAGE = (
     "usage: python -m rpo_jax.envs [--check NAME]\n\n"
@@ -77,15 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     if argv in (["--help"], ["-h"]):
         print(USAGE)
         return 0
-    try:
+    with command_failures() as exit:
         if len(argv) == 2 and argv[0] == "--check":
             return check(argv[1])
         if argv:
             raise UsageError(f"python -m rpo_jax.envs takes no arguments or --check NAME, got {' '.join(argv)} (see --help)")
-    except UsageError as error:
-        return usage_failure(error)
-    list_envs()
-    return 0
+        list_envs()
+    return exit.code
 
 
 if __name__ == "__main__":

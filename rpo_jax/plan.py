@@ -1,0 +1,305 @@
+"""The plan of one command's runs: built from the run's spec, checked before anything is written,
+and read back from config.json to resume.
+
+    plan = new_plan("cartpole", Config(), RunSpec(out=Path("runs/x"), num_seeds=2))
+
+Building a plan checks everything that the flags can get wrong, validates the config once and
+parses the sweeps once: the plan carries the grid of sweep points and the placement of its runs
+on the devices, which `rpo_jax.runner` trains. config.json records the plan (`PLAN_FIELDS`);
+`resumed_plan` reads it back, checked as the flags are.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import json
+import os
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Sequence
+
+from rpo_jax import envs
+from rpo_jax.config import SWEEPABLE, Config, check_applies
+from rpo_jax.devices import Placement, is_primary, make_placement
+from rpo_jax.envs import registry
+from rpo_jax.errors import UsageError
+from rpo_jax.rundir import RunDir
+from rpo_jax.spec import Processes, RunSpec
+
+# Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
+# steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
+# 2-core CPU: ten of them are about 5% of a 1M-step Cartpole run there (2 min at about 20,000
+# steps/s), which a crash would rarely repay, and under 1% from 5M steps on.
+CHECKPOINTS_PER_RUN = 10
+CHECKPOINT_MIN_RUN_STEPS = 5_000_000
+# jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
+SEED_LIMIT = 2**32
+# The plan's fields that config.json records and a resumed run reads back; runs recorded before
+# evaluation during training existed lack the eval fields and read back with evaluation off.
+PLAN_FIELDS = (
+    "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
+    "devices", "shard_envs",
+)  # fmt: skip
+# What a resumed run of a config.json written before a field existed reads for it.
+PLAN_DEFAULTS = {"eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False}
+# The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
+PLAN_TYPES: dict[str, tuple[type, ...]] = {
+    "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
+    "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
+    "devices": (int, type(None)), "shard_envs": (bool,),
+}  # fmt: skip
+# The plan's fields that decide the numbers a run trains to, besides every Config field: each
+# checkpoint records them (`training_record`), and a resume whose config.json differs is refused.
+TRAINING_FIELDS = ("env", "seed", "num_seeds", "sweep")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunPlan:
+    """Everything that defines the runs of one command; config.json records it."""
+
+    out: Path
+    env: str
+    preset: str | None
+    seed: int
+    num_seeds: int
+    sweep: tuple[str, ...]
+    config: Config
+    log_every: int
+    checkpoint_every: int  # env steps per run between checkpoints; 0: none
+    eval_every: int = 0  # env steps per run between evaluations of the deterministic policy; 0: none
+    eval_episodes: int = 10
+    devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
+    shard_envs: bool = False  # split each run's environments over the devices instead of the runs
+    resuming: bool = False
+    allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
+    # Built once with the plan, from the fields above: the sweep's points and the runs' placement.
+    grid: tuple[dict[str, float], ...] = ({},)
+    placement: Placement | None = None
+
+    @property
+    def seeds(self) -> range:
+        return range(self.seed, self.seed + self.num_seeds)
+
+    @property
+    def eval_updates(self) -> int | None:
+        """Updates between evaluations; None when evaluation is off."""
+        return max(1, self.eval_every // self.config.batch_size) if self.eval_every else None
+
+    @property
+    def run_dir(self) -> RunDir:
+        return RunDir(self.out)
+
+
+def new_plan(
+    env: str, config: Config, run: RunSpec, processes: Processes | None = None, preset: str | None = None
+) -> RunPlan:  # fmt: skip
+    """A plan for the new run directory `run.out` on `processes`' devices (None: all of this
+    process's), checked before anything is written."""
+    processes = processes or Processes()
+    grid = check_new(env, config, run)
+    if is_primary():  # the one process that writes it (the others may find it begun)
+        if not RunDir(run.out).is_new():
+            raise UsageError(f"--out {run.out} already exists and is not an empty directory; choose a new one or --resume it")
+        check_writable(run.out)
+    run_steps = config.num_updates * config.batch_size
+    return RunPlan(
+        out=run.out, env=env, preset=preset, seed=run.seed, num_seeds=run.num_seeds, sweep=tuple(run.sweep), config=config,
+        log_every=run.log_every or max(1, config.num_updates // 100),
+        checkpoint_every=default_checkpoint_every(run_steps) if run.checkpoint_every is None else run.checkpoint_every,
+        eval_every=run.eval_every, eval_episodes=run.eval_episodes, devices=processes.devices,
+        shard_envs=processes.shard_envs, grid=tuple(grid),
+        # A bad layout is refused here, before anything is written.
+        placement=make_placement(processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config),
+    )  # fmt: skip
+
+
+def default_checkpoint_every(run_steps: int) -> int:
+    """Environment steps per run between checkpoints when none is asked for: a tenth of the run
+    from CHECKPOINT_MIN_RUN_STEPS steps per run on, else 0 (none)."""
+    return run_steps // CHECKPOINTS_PER_RUN if run_steps >= CHECKPOINT_MIN_RUN_STEPS else 0
+
+
+def check_new(env: str, config: Config, run: RunSpec) -> list[dict[str, float]]:
+    """Refuses, as UsageError, every bad part of a new plan but its directory and layout: what
+    `new_plan` checks first, and what an experiment checks for all its runs before it writes
+    anything. Returns the sweep's grid."""
+    config.validate()
+    return check_run(env, config, run)
+
+
+def check_run(env: str, config: Config, run: RunSpec) -> list[dict[str, float]]:
+    """Refuses the bad fields of `run` with a valid `config` (its sweep's points are validated
+    here); returns the sweep's grid."""
+    envs.env_spec(env)  # an unknown name is refused here, before anything is written
+    if run.num_seeds < 1:
+        raise UsageError(f"--num-seeds must be >= 1, got {run.num_seeds}")
+    check_seeds(run.seed, run.num_seeds)
+    if run.log_every is not None and run.log_every < 1:
+        raise UsageError(f"--log-every must be >= 1, got {run.log_every}")
+    if run.checkpoint_every is not None and run.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every must be >= 0 (0: never), got {run.checkpoint_every}")
+    grid = parse_sweeps(run.sweep, config)
+    if run.eval_every < 0 or run.eval_episodes < 1:
+        raise UsageError(
+            f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {run.eval_every}, {run.eval_episodes}"
+        )
+    return grid
+
+
+def check_seeds(seed: int, num_seeds: int) -> None:
+    """Refuses seeds outside the PRNG key's range [0, 2**32), which would train another seed's run."""
+    if not 0 <= seed or seed + num_seeds > SEED_LIMIT:
+        raise UsageError(
+            f"--seed must give seeds in [0, 2**32 - 1 = {SEED_LIMIT - 1}] (the PRNG key's range), "
+            f"got seeds {seed} to {seed + num_seeds - 1}"
+        )
+
+
+def check_writable(out: Path) -> None:
+    """Refuses an --out that cannot be created: under a file or a dangling symbolic link, or in a
+    directory this process cannot write (a read-only file system)."""
+    ancestor = out.absolute()
+    while not ancestor.exists():
+        if ancestor.is_symlink():  # a dangling link: mkdir would fail with "File exists"
+            raise UsageError(f"--out {out}: {ancestor} is a symbolic link to {os.readlink(ancestor)}, which does not exist")
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise UsageError(f"--out {out}: {ancestor} is a file, not a directory")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise UsageError(f"--out {out}: {ancestor} is not writable (read-only file system or no permission)")
+
+
+def resumed_plan(out: Path) -> RunPlan:
+    """The plan saved in `out`'s config.json, to continue from its last checkpoint."""
+    run_dir = RunDir(out)
+    if not run_dir.has_config():
+        raise UsageError(f"--resume {out}: no config.json there; give a directory written by rpo_jax.train")
+    if run_dir.is_finished():
+        raise UsageError(f"--resume {out}: that run has already finished (summary.json exists)")
+    try:
+        saved = run_dir.read_config()
+        plan = {name: {**PLAN_DEFAULTS, **saved["plan"]}[name] for name in PLAN_FIELDS}
+        config = Config.from_dict(saved["config"])
+    except UsageError as error:
+        raise UsageError(f"--resume {out}: {error}") from None
+    except (KeyError, TypeError) as error:
+        raise UsageError(f"--resume {out}: config.json was not written by rpo_jax.train (its plan lacks {error})") from None
+    # Before anything builds the environment: config.json's env is never code from inside the run directory.
+    registry.check_import_outside(plan["env"], out)
+    try:
+        grid = check_saved_plan(plan, config)
+    except UsageError as error:
+        raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
+    placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config)
+    return RunPlan(
+        out=out, config=config, resuming=True, grid=tuple(grid), placement=placement,
+        **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
+    )  # fmt: skip
+
+
+def check_saved_plan(plan: dict[str, Any], config: Config) -> list[dict[str, float]]:
+    """Refuses a plan read from config.json as its flags would be refused (a hand-edited one):
+    each field's type, then `check_run` (`config`, read by Config.from_dict, is valid). Returns
+    the sweep's grid."""
+    for name, types in PLAN_TYPES.items():
+        value = plan[name]
+        # JSON's true and false are Python's bools, which are ints too.
+        if not isinstance(value, types) or (isinstance(value, bool) and bool not in types):
+            allowed = " or ".join("null" if kind is type(None) else kind.__name__ for kind in types)
+            raise UsageError(f"{name} must be {allowed}, got {value!r}")
+    if not all(isinstance(spec, str) for spec in plan["sweep"]):
+        raise UsageError(f"sweep must be a list of NAME=V1,V2 strings, got {plan['sweep']!r}")
+    run = RunSpec(**{field.name: plan[field.name] for field in dataclasses.fields(RunSpec) if field.name != "out"})
+    return check_run(plan["env"], config, run)
+
+
+def plan_record(plan: RunPlan) -> dict[str, Any]:
+    """The plan's fields that config.json records (`PLAN_FIELDS`)."""
+    return {name: getattr(plan, name) for name in PLAN_FIELDS}
+
+
+def training_record(plan: RunPlan) -> dict[str, Any]:
+    """What a checkpoint records of the plan that trained it: TRAINING_FIELDS and every Config
+    field, as JSON reads them back."""
+    fields = {**{name: getattr(plan, name) for name in TRAINING_FIELDS}, **dataclasses.asdict(plan.config)}
+    return json.loads(json.dumps(fields))
+
+
+def check_trained_with(plan: RunPlan, record: dict[str, Any]) -> None:
+    """Refuses to continue a checkpoint with a config.json that differs from its record in a
+    field that changes training (edited by hand): the run would go on as another one. A
+    checkpoint saved before the record held them, or a field added since, is not compared."""
+    saved = record.get("trained_with")
+    if not isinstance(saved, dict):
+        return
+    for name, value in training_record(plan).items():
+        if name in saved and saved[name] != value:
+            raise UsageError(
+                f"--resume {plan.out}: config.json's {name} is {value!r}, but the checkpoint at update {record.get('update')} "
+                f"was trained with {saved[name]!r}; a run continues with the values it was trained with"
+            )
+
+
+def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
+    """The grid of hyperparameter values given by --sweep NAME=V1,V2 (a product over NAMEs)."""
+    axes: dict[str, list[float]] = {}
+    for spec in specs:
+        name, _, values = spec.partition("=")
+        if name not in SWEEPABLE:
+            raise UsageError(f"--sweep {spec}: unknown field {name!r}; sweepable: {', '.join(SWEEPABLE)}")
+        if name in axes:
+            raise UsageError(f"--sweep {name} is given twice; give all its values once")
+        check_applies(config.algo, [name], lambda name: f"--sweep {name}")
+        try:
+            axes[name] = [float(v) for v in values.split(",")]
+        except ValueError:
+            raise UsageError(f"--sweep {spec}: values must be numbers separated by commas") from None
+        if len(set(axes[name])) < len(axes[name]):
+            raise UsageError(f"--sweep {spec}: a value is given twice; give each once")
+    grid = [dict(zip(axes, point)) for point in itertools.product(*axes.values())]
+    for point in filter(None, grid):  # without a sweep, the one point is the config, validated already
+        try:
+            dataclasses.replace(config, **point).validate()
+        except UsageError as error:
+            raise UsageError(f"--sweep: {error}") from None
+    return grid
+
+
+def describe_runs(plan: RunPlan, grid: list[dict[str, float]]) -> list[dict[str, Any]]:
+    """Every run: index, seed and hyperparameters. Point-major: the seeds of grid point i are
+    runs[i * num_seeds : (i + 1) * num_seeds]."""
+    defaults = plan.config.hyperparameters()
+    return [
+        {"run": index, "seed": seed, "hparams": {**defaults, **point}}
+        for index, (point, seed) in enumerate(itertools.product(grid, plan.seeds))
+    ]
+
+
+def versions() -> dict[str, str]:
+    """The versions of the packages that decide a run's numbers. distrax's distributions are
+    TensorFlow Probability's, which distrax requires as the nightly build `tfp-nightly`; either
+    distribution name is recorded, whichever is installed."""
+    names = ("jax", "jaxlib", "flax", "optax", "distrax", "mujoco", "mujoco-mjx", "brax", "numpy")
+    found = {name: metadata.version(name) for name in names}
+    for name in ("tfp-nightly", "tensorflow-probability"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            found[name] = metadata.version(name)
+    return found
+
+
+def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str], env_spec: Any) -> dict[str, Any]:
+    """config.json's content."""
+    return {
+        "env": plan.env,
+        "algo": plan.config.algo,
+        "seeds": list(plan.seeds),
+        "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
+        "runs": runs,
+        "config": dataclasses.asdict(plan.config),
+        "env_spec": dataclasses.asdict(env_spec),
+        "plan": {"algo": plan.config.algo, **plan_record(plan)},
+        "versions": versions(),
+    }
+

@@ -1,0 +1,115 @@
+"""What the host makes of each chunk's numbers: metrics.jsonl's rows, the first non-finite
+quantity of a diverged run, and summary.json's returns over the runs and their spread."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import jax
+import numpy as np
+
+from rpo_jax import ppo
+from rpo_jax.plan import RunPlan
+from rpo_jax.scores import tail_mean
+
+
+def logged_rows(
+    plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float,
+    eval_returns: np.ndarray | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
+    """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
+    With `eval_returns` (one per run, after the chunk's last update) that update is logged too,
+    its rows with `eval_return`; rows of runs without evaluation have no such field."""
+    rows = []
+    last = first_update + chunk
+    for offset in range(chunk):
+        update = first_update + offset + 1
+        evaluated = eval_returns is not None and update == last
+        if update % plan.log_every and update != plan.config.num_updates and not evaluated:
+            continue
+        for index, run in enumerate(runs):
+            values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
+            # Counted here in Python's integers: the trainer's int32 count wraps after 2**31 steps.
+            values["env_steps"] = update * plan.config.batch_size
+            values["episodes_finished"] = int(values["episodes_finished"])
+            rows.append({"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps})
+            if evaluated:
+                rows[-1]["eval_return"] = float(eval_returns[index])
+    return rows
+
+
+def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
+    """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
+    or inf, naming what went non-finite first: observation, reward, loss (any logged metric),
+    parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
+    updates of the chunk]."""
+    found = {
+        "observation": diagnostics.nonfinite_observations > 0,
+        "reward": diagnostics.nonfinite_rewards > 0,
+        "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
+        "parameters": diagnostics.nonfinite_parameters > 0,
+        **{statistic_name(name): counts > 0 for name, counts in diagnostics.nonfinite_statistics.items()},
+    }
+    bad = np.any(list(found.values()), axis=0)
+    if not bad.any():
+        return None
+    offset = int(np.argmax(bad.any(axis=0)))
+    run = int(np.argmax(bad[:, offset]))
+    return offset, run, [name for name, flags in found.items() if flags[run, offset]]
+
+
+# The running statistics of ppo.running_statistics, as a divergence names them.
+STATISTICS = {"obs_stats": "observation normaliser's", "return_stats": "reward normaliser's", "value_stats": "value normaliser's"}
+
+
+def statistic_name(name: str) -> str:
+    """The name a divergence gives a statistic: "obs_stats.var" -> "observation normaliser's var (obs_stats.var)"."""
+    owner, _, field = name.partition(".")
+    return f"{STATISTICS.get(owner, owner)} {field} ({name})"
+
+
+def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]]) -> None:
+    """Adds the rows' training returns and evaluation returns, where a row has one, to each run's."""
+    for row in rows:
+        for name, returns in logged_returns.items():
+            if name in row:
+                returns[row["run"]].append(row[name])
+
+
+def summarise(
+    plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]],
+    compile_seconds: float, seconds: dict[str, float],
+) -> dict[str, Any]:  # fmt: skip
+    """summary.json's content; adds each run's final return (and, with evaluation, its last
+    evaluation return) to `runs`. `seconds` are the `Clock`'s: steps/s counts training only."""
+    config = plan.config
+    names = ["final_return", "eval_return"] if plan.eval_every else ["final_return"]
+    for index, run in enumerate(runs):
+        run["final_return"] = tail_mean(logged_returns["episode_return"][index])
+        if plan.eval_every:
+            run["eval_return"] = logged_returns["eval_return"][index][-1]
+    grid_summary = []
+    for index, point in enumerate(grid):
+        seeds = runs[index * plan.num_seeds : (index + 1) * plan.num_seeds]
+        grid_summary.append({"hparams": point, "seeds": list(plan.seeds), **spread(seeds, names)})
+    env_steps = config.num_updates * config.batch_size
+    return {
+        "env": plan.env,
+        "algo": config.algo,
+        "dist": config.dist,
+        "num_seeds": plan.num_seeds,
+        "total_timesteps": env_steps,
+        **spread(runs, names),
+        "grid": grid_summary,
+        "runs": runs,
+        "compile_seconds": compile_seconds,
+        **seconds,
+        "sps": env_steps * len(runs) / seconds["train_seconds"],
+        "device": str(jax.devices()[0].device_kind),
+    }
+
+
+def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float]:
+    """`NAME_mean` and `NAME_std` over `runs` of each run's NAME."""
+    values = {name: [run[name] for run in runs] for name in names}
+    return {f"{name}_{kind}": float(fn(v)) for name, v in values.items() for kind, fn in (("mean", np.mean), ("std", np.std))}

@@ -1,0 +1,153 @@
+"""The spec of a run, declared once for every command that trains: the run itself (`RunSpec`),
+where and in how many processes it trains (`Processes`) and how it reports (`Tracking`), beside
+the algorithm's `Config`. `rpo_jax.train` and `rpo_jax.experiment` nest these dataclasses in their
+arguments, so that what they share has the same flags (tyro reads them, without prefixes), and
+`rpo_jax.plan` builds a run from them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import re
+from pathlib import Path
+from typing import Literal, Sequence, TypeVar
+
+import tyro
+
+from rpo_jax.config import PRESETS
+from rpo_jax.errors import UsageError
+
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSpec:
+    """The runs of one command: output, seeds, sweeps, logging, checkpoints and evaluation."""
+
+    out: Path | None = None
+    """output directory, new or empty; None: runs/<env>-<algo>-<timestamp>"""
+    seed: int = 1
+    """first seed; seed i of --num-seeds is seed + i"""
+    num_seeds: int = 1
+    """seeds trained together in one vmapped program"""
+    sweep: tyro.conf.UseAppendAction[tuple[str, ...]] = ()
+    """NAME=V1,V2,... (repeatable): every value x every other sweep x seeds in one program;
+    NAME in rpo_alpha, ent_coef, lr, drac_coef"""
+    log_every: int | None = None
+    """write metrics every N updates; None: about 100 lines per seed"""
+    checkpoint_every: int | None = None
+    """checkpoint every N environment steps per run; None: 10 per run for runs of 5M steps or more, else none; 0: never"""
+    eval_every: int = 0
+    """evaluate the deterministic policy every N env steps per run (in whole chunks of updates) and at the end; 0: never"""
+    eval_episodes: int = 10
+    """episodes per evaluation, on fresh environments with their own rewards"""
+
+
+@dataclasses.dataclass(frozen=True)
+class Processes:
+    """Where the runs train: the devices of each process, the processes and the compile cache."""
+
+    devices: int | None = None
+    """local devices to train on, in each process; None: all. The runs (seeds x sweep points) are split across them,
+    at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
+    shard_envs: bool = False
+    """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
+    cpu_devices: int | None = None
+    """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
+    sweep points train faster on a CPU of several cores); None: JAX's default (one)"""
+    coordinator: str | None = None
+    """HOST:PORT of process 0, to train as one of --num-processes processes (one per machine or GPU) with --process-id"""
+    num_processes: int | None = None
+    """processes that train together, each on its --devices; process 0 writes --out (see --coordinator)"""
+    process_id: int | None = None
+    """this process's index among --num-processes, from 0 (see --coordinator)"""
+    coordinator_timeout: int = 30  # well under JAX's 300 s, which ends in a C++ abort
+    """seconds the processes wait for each other to join, and for one that stopped answering before the others end
+    with an error; raise it on clusters whose processes start far apart"""
+    distributed: bool = False
+    """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
+    compile_cache: bool = True
+    """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
+
+
+# The flags that make several processes train together.
+JOINING_FIELDS = ("coordinator", "num_processes", "process_id", "coordinator_timeout", "distributed")
+
+
+@dataclasses.dataclass(frozen=True)
+class Tracking:
+    """How the runs report besides their directory: the progress display and a tracker."""
+
+    quiet: bool = False
+    """no progress display"""
+    track: Literal["wandb"] | None = None
+    """also log to Weights & Biases (the wandb extra); TensorBoard events are always written"""
+    wandb_project: str = "rpo_jax"
+    """W&B project"""
+    wandb_entity: str | None = None
+    """W&B entity (team or user); None: W&B's default"""
+    wandb_mode: Literal["online", "offline"] | None = None
+    """offline: write under OUT/wandb for `wandb sync`; None: W&B's default (the WANDB_MODE variable, else online)"""
+    wandb_group: str | None = None
+    """W&B group of the runs; None: the output directory's name. Each sweep point's seeds form GROUP/POINT"""
+
+
+Args = TypeVar("Args")
+
+
+def parse(cls: type[Args], argv: Sequence[str], default: Args | None, prog: str) -> Args:
+    """The flags as `cls` (a dataclass nesting the spec's), starting from `default` (None: the
+    class's defaults); bad input
+    raises UsageError with tyro's message as one line."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            return tyro.cli(cls, args=list(argv), default=default, prog=prog)
+    except SystemExit as exit:
+        if exit.code in (0, None):  # --help, printed on stdout
+            raise
+        raise UsageError(one_line(captured.getvalue())) from None
+
+
+def given_value(argv: Sequence[str], flag: str) -> str | None:
+    for index, token in enumerate(argv):
+        if token == flag and index + 1 < len(argv):
+            return argv[index + 1]
+        if token.startswith(flag + "="):
+            return token.partition("=")[2]
+    return None
+
+
+def given_fields(argv: Sequence[str]) -> set[str]:
+    """The names of the fields whose flags appear in argv: `--no-x` names x alone (tyro's
+    negation of the boolean x; no field's name starts with no_)."""
+    names = {token[2:].partition("=")[0].replace("-", "_") for token in argv if token.startswith("--")}
+    return {name.removeprefix("no_") for name in names}
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def one_line(message: str) -> str:
+    """tyro's boxed error as one line: its title, its first section and any suggestion."""
+    # tyro draws its box in Unicode on a terminal and in ASCII (rules of dashes) elsewhere.
+    lines = [line.strip(" │╭╮╰╯─|") for line in message.splitlines()]
+    lines = ["" if set(line) <= {"-"} else line for line in lines]
+    if len(lines) > 2 and lines[0] and not lines[1]:  # the ASCII box rules its title off from the text
+        del lines[1]
+    sections: list[list[str]] = [[]]
+    for line in lines:
+        if line.startswith("For full helptext"):
+            break
+        if not line:
+            if sections[-1]:
+                sections.append([])
+            continue
+        sections[-1].append(line)
+    parts = sections[0][1:] or sections[0]
+    suggestion = next((section for section in sections[1:] if section and section[0].startswith("Perhaps")), None)
+    text = " ".join(parts + (suggestion[:2] if suggestion else []))
+    return re.sub(r"\s+", " ", text).strip() or "invalid arguments; see --help"
