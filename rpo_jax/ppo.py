@@ -33,25 +33,13 @@ import optax
 from flax import struct
 
 from rpo_jax import envs
-from rpo_jax.config import SWEEPABLE, Config
+from rpo_jax.config import Config
+from rpo_jax.hyperparams import SWEEPABLE, Hyperparams
 from rpo_jax.networks import Actor, Critic, actor_log_scale, perturb_location, policy_distribution
 
 
-@struct.dataclass
-class Hyperparams:
-    """The sweepable hyperparameters (`config.SWEEPABLE`) as arrays in the training state, so
-    that `jax.vmap` over a batch of them (and of keys) trains a whole grid in one program.
-    Each leaf is [] for one run, [R] for a batch of runs."""
-
-    rpo_alpha: jax.Array
-    ent_coef: jax.Array
-    lr: jax.Array
-    drac_coef: jax.Array
-
-    @classmethod
-    def from_config(cls, config: Config) -> "Hyperparams":
-        values = config.hyperparameters()
-        return cls(**{name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE})
+# The declaration imports no JAX (the command line reads it); training carries it as a pytree.
+jax.tree_util.register_dataclass(Hyperparams, data_fields=list(SWEEPABLE), meta_fields=[])
 
 
 def compute_gae(
