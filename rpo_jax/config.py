@@ -16,6 +16,7 @@ import typing
 from typing import Any, Literal
 
 from rpo_jax.errors import UsageError
+from rpo_jax.hyperparams import SWEEPABLE, read_by
 
 AlgoName = Literal["ppo", "rpo", "rad", "drac"]
 DistName = Literal["gaussian", "laplace", "gumbel"]
@@ -24,9 +25,6 @@ LrScheduleName = Literal["linear", "constant", "adaptive"]
 TruncationName = Literal["bootstrap", "terminate"]
 AUGMENTATIONS = ("none", "rad", "drac")
 
-# The continuous hyperparameters a sweep may vary: they live in the training state as arrays
-# (`ppo.Hyperparams`), so one compiled program trains a whole grid of them.
-SWEEPABLE = ("rpo_alpha", "ent_coef", "lr", "drac_coef")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,23 +34,28 @@ class Algorithm:
     name: str
     summary: str
     augmentation: str  # one of AUGMENTATIONS
-    reads: tuple[str, ...]  # the algorithm-specific Config fields it uses
+    options: tuple[str, ...] = ()  # the algorithm-specific Config fields it uses besides hyperparameters
+
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The algorithm-specific Config fields it uses: the sweepable hyperparameters that only
+        some algorithms' losses read, this one's among them (`hyperparams.read_by`), and its options."""
+        return tuple(name for name in SWEEPABLE if self.name in read_by(name)) + self.options
 
 
 ALGORITHMS: dict[str, Algorithm] = {
     algorithm.name: algorithm
     for algorithm in (
-        Algorithm("ppo", "PPO with the clipped surrogate", "none", ()),
-        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none", ("rpo_alpha",)),
+        Algorithm("ppo", "PPO with the clipped surrogate", "none"),
+        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none"),
         Algorithm("rad", "PPO on amplitude-scaled observations (RAD)", "rad", ("aug_low", "aug_high")),
         Algorithm(
-            "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac",
-            ("drac_coef", "aug_low", "aug_high"),
+            "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac", ("aug_low", "aug_high"),
         ),
     )
 }  # fmt: skip
 # The fields that belong to some algorithms only; giving one to another algorithm is an error.
-ALGORITHM_FIELDS = ("rpo_alpha", "drac_coef", "aug_low", "aug_high")
+ALGORITHM_FIELDS = tuple(dict.fromkeys(name for algorithm in ALGORITHMS.values() for name in algorithm.reads))
 # The trainer counts updates and indexes its batch with int32 (XLA's default integers without x64).
 INT32_LIMIT = 2**31
 

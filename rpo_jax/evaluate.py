@@ -31,17 +31,17 @@ if TYPE_CHECKING:
     import numpy as np
 
     from rpo_jax import envs
-    from rpo_jax.policy import Policy
+    from rpo_jax.acting import ActFn
 
 
-def episode_returns(env: envs.Env, policy: Policy, episodes: int, key: jax.Array, deterministic: bool) -> np.ndarray:
+def episode_returns(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool) -> np.ndarray:
     """The undiscounted return of the first episode of each of `episodes` parallel copies."""
     import functools
 
     import jax
     import numpy as np
 
-    from rpo_jax.policy import first_episode_returns
+    from rpo_jax.acting import first_episode_returns
 
     run = functools.partial(first_episode_returns, env, policy, episodes, deterministic=deterministic)
     returns, finished = jax.jit(run)(key)
@@ -51,7 +51,7 @@ def episode_returns(env: envs.Env, policy: Policy, episodes: int, key: jax.Array
 
 
 def record_video(
-    env: envs.Env, policy: Policy, path: Path, key: jax.Array, deterministic: bool,
+    env: envs.Env, policy: ActFn, path: Path, key: jax.Array, deterministic: bool,
     width: int = 640, height: int = 480,
 ) -> tuple[float, int]:  # fmt: skip
     """Renders one episode to `path` (MP4); returns its return and length. `check_video` first."""
@@ -87,7 +87,7 @@ def check_video(env: envs.Env) -> None:
         raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
 
 
-def episode_positions(env: envs.Env, policy: Policy, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
+def episode_positions(env: envs.Env, policy: ActFn, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
     """The joint positions of one episode, from its reset on, and its return."""
     import jax
     import numpy as np

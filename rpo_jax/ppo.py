@@ -33,25 +33,14 @@ import optax
 from flax import struct
 
 from rpo_jax import envs
-from rpo_jax.config import SWEEPABLE, Config
+from rpo_jax.acting import wrap_for_training
+from rpo_jax.config import Config
+from rpo_jax.hyperparams import SWEEPABLE, Hyperparams
 from rpo_jax.networks import Actor, Critic, actor_log_scale, perturb_location, policy_distribution
 
 
-@struct.dataclass
-class Hyperparams:
-    """The sweepable hyperparameters (`config.SWEEPABLE`) as arrays in the training state, so
-    that `jax.vmap` over a batch of them (and of keys) trains a whole grid in one program.
-    Each leaf is [] for one run, [R] for a batch of runs."""
-
-    rpo_alpha: jax.Array
-    ent_coef: jax.Array
-    lr: jax.Array
-    drac_coef: jax.Array
-
-    @classmethod
-    def from_config(cls, config: Config) -> "Hyperparams":
-        values = config.hyperparameters()
-        return cls(**{name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE})
+# The declaration imports no JAX (the command line reads it); training carries it as a pytree.
+jax.tree_util.register_dataclass(Hyperparams, data_fields=list(SWEEPABLE), meta_fields=[])
 
 
 def compute_gae(
@@ -300,26 +289,6 @@ class Transition:
     truncated: jax.Array
     episode_return: jax.Array
     episode_length: jax.Array
-
-
-def wrap_for_training(
-    env: envs.Env, config: Config, env_shards: int = 1, axis_name: str | None = None
-) -> envs.NormalizeObservation:
-    """The batched environment the trainer steps: `env` itself if it is already batched, else
-    `config.num_envs / env_shards` auto-resetting copies (one device's share), under the episode
-    statistics, action clipping and the reward and observation normalisers."""
-    num_envs = config.num_envs // env_shards
-    if not isinstance(env, envs.BatchedEnv):
-        # The first rollout starts the environments, so the training program resets in one place.
-        env = envs.vectorize(env, num_envs, defer_start=True)
-    elif env.num_envs != num_envs:
-        raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {num_envs}")
-    vec = envs.EpisodeStatistics(env)
-    vec = envs.ClipAction(vec)
-    vec = envs.NormalizeReward(
-        vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward, axis_name
-    )
-    return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs, axis_name=axis_name)
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:

@@ -30,6 +30,7 @@ from rpo_jax import aggregate, figures, reference
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
+from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
 )  # fmt: skip
@@ -39,7 +40,8 @@ RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
 REPORT_TITLE = "# Report: "  # report.md's first line starts so: how check_out knows its own file
-ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", "rpo_alpha", "ent_coef", "lr", "drac_coef", "seed")
+ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
+# A logged row's update and `ppo.Metrics`' fields in order: typed out (this module loads no JAX), pinned by a test.
 METRIC_COLUMNS = (
     "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
     "policy_loss", "value_loss", "approx_kl", "clip_fraction", "action_std", "learning_rate",

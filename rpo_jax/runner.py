@@ -30,12 +30,12 @@ import numpy as np
 from flax import serialization
 
 from rpo_jax import devices, envs, ppo
+from rpo_jax.acting import Policy, first_episode_returns
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
 from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, training_record
-from rpo_jax.policy import act, first_episode_returns
 from rpo_jax.records import first_nonfinite, logged_rows, record_returns, summarise
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 
@@ -267,9 +267,7 @@ def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Ca
     copies = envs.vectorize(env, plan.eval_episodes)
 
     def evaluate(inputs: dict[str, Any], key: jax.Array) -> jax.Array:
-        def policy(obs: jax.Array, key: jax.Array, deterministic: bool) -> jax.Array:
-            return act(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high, obs, key, deterministic)
-
+        policy = Policy(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high)
         key = jax.random.fold_in(key, inputs["update"])
         returns, _ = first_episode_returns(copies, policy, plan.eval_episodes, key, deterministic=True)
         return returns.mean()

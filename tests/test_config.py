@@ -5,9 +5,12 @@ import typing
 
 import pytest
 
-from rpo_jax import ppo
+import jax
+
+from rpo_jax import ppo, report
 from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Config, choices
 from rpo_jax.errors import UsageError
+from rpo_jax.hyperparams import Hyperparams, read_by
 from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS
 
 
@@ -34,6 +37,26 @@ def test_declared_choices_are_the_implemented_ones():
     assert all(name in hints for name in ALGORITHM_FIELDS)
     for algorithm in ALGORITHMS.values():
         assert set(algorithm.reads) <= set(ALGORITHM_FIELDS)
+
+
+def test_the_sweepable_hyperparameters_are_declared_once():
+    # Hyperparams' fields are the declaration; the lists of them derive from it.
+    assert SWEEPABLE == tuple(field.name for field in dataclasses.fields(Hyperparams))
+    assert report.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
+    for name in SWEEPABLE:
+        assert isinstance(getattr(Config(), name), float), name  # its default is Config's field
+        assert set(read_by(name)) <= set(ALGORITHMS), name
+        for algorithm in ALGORITHMS.values():
+            read = not read_by(name) or algorithm.name in read_by(name)
+            assert (name in algorithm.reads) == (read and name in ALGORITHM_FIELDS), (name, algorithm.name)
+            config = Config(algo=algorithm.name, **dict.fromkeys(SWEEPABLE, 0.25))
+            assert config.hyperparameters()[name] == (0.25 if read else 0.0), (name, algorithm.name)
+    leaves = jax.tree.leaves(jax.vmap(lambda _: Hyperparams.from_config(Config()))(jax.numpy.arange(3)))
+    assert [leaf.shape for leaf in leaves] == [(3,)] * len(SWEEPABLE)
+
+
+def test_results_columns_are_the_trainers_metrics():
+    assert report.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
 
 
 @pytest.mark.parametrize(

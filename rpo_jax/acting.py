@@ -1,0 +1,90 @@
+"""A policy acting in environments, shared by every consumer: the environment training steps
+(`wrap_for_training`), the policy of a trained or training run (`Policy`) and the returns of its
+first episodes (`first_episode_returns`).
+
+`Policy` and `first_episode_returns` serve `rpo_jax.load_policy`, `rpo_jax.evaluate` and the
+evaluation during training (`--eval-every`), so that all three act and count returns the same way.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from rpo_jax import envs
+from rpo_jax.config import Config
+from rpo_jax.networks import Actor, policy_distribution
+
+# act(obs, key, deterministic) -> action: a `Policy`, or one jitted (`rpo_jax.load_policy`).
+ActFn = Callable[..., jax.Array]
+
+
+@struct.dataclass
+class Policy:
+    """The actor of a run with its parameters and observation statistics, acting within the
+    environment's action bounds [low, high]. The config says how observations are normalised and
+    which distribution the actor's outputs parameterise."""
+
+    config: Config = struct.field(pytree_node=False)
+    actor: Actor = struct.field(pytree_node=False)
+    params: Any
+    obs_stats: envs.RunningMeanStd
+    low: jax.Array
+    high: jax.Array
+
+    def __call__(self, obs: jax.Array, key: jax.Array, deterministic: bool = False) -> jax.Array:
+        """The action for a raw observation [obs_size] or batch [B, obs_size]: normalised by the
+        training statistics as in training, sampled from the policy (its location when
+        `deterministic`: the Gaussian's mean, the Laplace's and Gumbel's location) and clipped to
+        the environment's bounds, as the environment would."""
+        if self.config.normalize_obs:
+            obs = envs.normalize_observation(obs, self.obs_stats, self.config.obs_clip)
+        loc, log_scale = self.actor.apply(self.params, obs)
+        action = loc if deterministic else policy_distribution(loc, log_scale, self.config.dist).sample(seed=key)
+        return jnp.clip(action, self.low, self.high)
+
+
+def first_episode_returns(
+    env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool
+) -> tuple[jax.Array, jax.Array]:
+    """Jittable: the undiscounted return of the first episode of each of `episodes` fresh
+    copies of `env` (its own rewards, no scaling or normalisation), and whether it ended within
+    max_episode_steps. Both [episodes]. `env` may be batched already, with `episodes` copies."""
+    vec = envs.EpisodeStatistics(env if isinstance(env, envs.BatchedEnv) else envs.vectorize(env, episodes))
+    reset_key, act_key = jax.random.split(key)
+    state, ts = vec.reset(reset_key)
+
+    def step(carry, key):
+        state, obs, returns, finished = carry
+        state, ts = vec.step(state, policy(obs, key, deterministic))
+        done = ts.terminated | ts.truncated
+        returns = jnp.where(done & ~finished, ts.info["episode_return"], returns)
+        return (state, ts.obs, returns, finished | done), None
+
+    zeros = jnp.zeros(episodes)
+    carry = (state, ts.obs, zeros, zeros.astype(bool))
+    (_, _, returns, finished), _ = jax.lax.scan(step, carry, jax.random.split(act_key, env.spec.max_episode_steps))
+    return returns, finished
+
+
+def wrap_for_training(
+    env: envs.Env, config: Config, env_shards: int = 1, axis_name: str | None = None
+) -> envs.NormalizeObservation:
+    """The batched environment the trainer steps: `env` itself if it is already batched, else
+    `config.num_envs / env_shards` auto-resetting copies (one device's share), under the episode
+    statistics, action clipping and the reward and observation normalisers."""
+    num_envs = config.num_envs // env_shards
+    if not isinstance(env, envs.BatchedEnv):
+        # The first rollout starts the environments, so the training program resets in one place.
+        env = envs.vectorize(env, num_envs, defer_start=True)
+    elif env.num_envs != num_envs:
+        raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {num_envs}")
+    vec = envs.EpisodeStatistics(env)
+    vec = envs.ClipAction(vec)
+    vec = envs.NormalizeReward(
+        vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward, axis_name
+    )
+    return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs, axis_name=axis_name)

@@ -1,0 +1,52 @@
+"""The sweepable hyperparameters, declared once: the fields of `Hyperparams`.
+
+Training holds them as arrays in its state (a pytree: `rpo_jax.ppo` registers the class), so
+that `jax.vmap` over a batch of them trains a whole grid in one compiled program. Each field's
+metadata says what the loss does with it (`doc`) and which algorithms' losses read it
+(`read_by`; every algorithm's when empty); its default is the `Config` field of the same name,
+and an algorithm whose loss does not read it trains with 0. What lists them derives from here:
+`SWEEPABLE`, a config's values (`Config.hyperparameters`), the algorithm table's reads, the
+runs' hyperparameters and labels, and results.csv's columns.
+
+This module imports no JAX, so that the command line can show `--help` without loading it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import jax
+
+
+def hyperparameter(doc: str, read_by: tuple[str, ...] = ()) -> Any:
+    """A field of `Hyperparams`: what the loss does with it, and the algorithms whose loss reads
+    it (every algorithm's when empty)."""
+    return dataclasses.field(metadata={"doc": doc, "read_by": read_by})
+
+
+@dataclasses.dataclass(frozen=True)
+class Hyperparams:
+    """The sweepable hyperparameters of a run; each leaf is [] for one run, [R] for a batch of runs."""
+
+    rpo_alpha: jax.Array = hyperparameter("half-width of RPO's uniform perturbation of the policy location", ("rpo",))
+    ent_coef: jax.Array = hyperparameter("weight of the entropy bonus")
+    lr: jax.Array = hyperparameter("Adam's learning rate, where the schedule starts")
+    drac_coef: jax.Array = hyperparameter("weight of DrAC's policy and value regularisers", ("drac",))
+
+    @classmethod
+    def from_config(cls, config: Any) -> Hyperparams:
+        """The values a `Config` trains with (`Config.hyperparameters`), as float32 scalars."""
+        import jax.numpy as jnp  # here: the command line imports this module without JAX
+
+        values = config.hyperparameters()
+        return cls(**{name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE})
+
+
+SWEEPABLE = tuple(field.name for field in dataclasses.fields(Hyperparams))
+
+
+def read_by(name: str) -> tuple[str, ...]:
+    """The algorithms whose loss reads the hyperparameter `name`; () when every algorithm's does."""
+    return next(field.metadata["read_by"] for field in dataclasses.fields(Hyperparams) if field.name == name)
