@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from rpo_jax import ppo
+from rpo_jax import loss as loss_module
 from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import make_env
 from rpo_jax.networks import perturb_location, policy_distribution
-from rpo_jax.ppo import Batch, compute_gae, make_networks, make_trainer, ppo_loss
+from rpo_jax.loss import Batch, compute_gae, ppo_loss
+from rpo_jax.ppo import make_networks, make_trainer
 
 # --------------------------------------------------------------------------------------------
 # GAE
@@ -306,7 +307,7 @@ def recorded_update():
     """One jitted update with `perturb_location` wrapped to record, per call at run time, the
     noise it added (through jax.debug.callback) and, at trace time, which function called it."""
     noises, callers = [], []
-    original = ppo.perturb_location
+    original = loss_module.perturb_location
 
     def recording_perturb_location(loc, key, alpha):
         callers.append(sys._getframe(1).f_code.co_name)
@@ -315,7 +316,7 @@ def recorded_update():
         return perturbed
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ppo, "perturb_location", recording_perturb_location)
+        mp.setattr(loss_module, "perturb_location", recording_perturb_location)
         trainer = make_trainer(RECORD_CONFIG, make_env("cartpole"))
         state = trainer.init(jax.random.PRNGKey(0))
         _, metrics = jax.jit(trainer.update)(state)
