@@ -26,7 +26,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from rpo_jax import aggregate, figures, reference
+from rpo_jax import aggregate, figures, reference, tables
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
@@ -34,7 +34,7 @@ from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
 )  # fmt: skip
-from rpo_jax.scores import kept_fraction, tail_mean, with_spread
+from rpo_jax.scores import kept_fraction, tail_mean
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -172,81 +172,6 @@ def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, s
     return scores
 
 
-def _cell(stats: dict, name: str, digits: int = 2) -> str:
-    # One seed has no spread to show: a "± 0.00" would read as a measured one.
-    mean, std, low, high = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std", "low", "high"))
-    return with_spread(mean, f" ± {std} [{low}, {high}]", stats["seeds"])
-
-
-def _table(envs: Sequence[str], variants: Sequence[str], cell: dict, best: dict) -> list[str]:
-    lines = ["| env | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
-    for env in envs:
-        cells = []
-        for variant in variants:
-            text = cell.get((env, variant), "")
-            cells.append(f"**{text}**" if text and best.get(env) == variant else text)
-        lines.append(f"| {env} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def _best(summary: dict, cells: dict, env: str, field: str) -> str | None:
-    return max((v for e, v in cells if e == env), key=lambda v: summary[env, v][field], default=None)
-
-
-def _result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
-    """The final return, final entropy and late-training tables with their explanations."""
-    returns = {key: _cell(stats, "return") for key, stats in summary.items()}
-    entropies = {key: _cell(stats, "entropy") for key, stats in summary.items()}
-    kept = {
-        key: with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
-        for key, s in summary.items()
-        if not math.isnan(s["kept"])
-    }
-    return [
-        "## Final return",
-        "",
-        "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
-        f"and, in brackets, the {aggregate.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
-        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed); the best mean "
-        "of each environment in bold.",
-        "",
-        *_table(envs, variants, returns, {env: _best(summary, summary, env, "return_mean") for env in envs}),
-        "",
-        "## Final policy entropy",
-        "",
-        "Entropy of the policy summed over action dimensions, averaged the same way; the highest in bold.",
-        "",
-        *_table(envs, variants, entropies, {env: _best(summary, summary, env, "entropy_mean") for env in envs}),
-        "",
-        "## Late training",
-        "",
-        "The return curve, averaged over windows of 10% of the logged updates: its last window as a "
-        "fraction of its best one, for the mean over seeds and (in brackets, with several seeds) the "
-        "worst seed. 1.000 means the return never fell back from its best; blank where the best "
-        "window is not positive.",
-        "",
-        *_table(envs, variants, kept, {env: _best(summary, kept, env, "kept") for env in envs}),
-        "",
-        *_eval_table(summary, envs, variants),
-    ]
-
-
-def _eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
-    """The evaluation return's table, where some variant was evaluated during training."""
-    evaluated = {key: _cell(stats, "eval") for key, stats in summary.items() if "eval_mean" in stats}
-    if not evaluated:
-        return []
-    return [
-        "## Evaluation return",
-        "",
-        "The last evaluation during training (--eval-every): the deterministic policy's return on fresh "
-        "episodes with the environment's own rewards, mean ± sample std over seeds [95% CI]; blank where "
-        "a variant was not evaluated.",
-        "",
-        *_table(envs, variants, evaluated, {env: _best(summary, evaluated, env, "eval_mean") for env in envs}),
-        "",
-    ]
-
 
 def aggregates(scores: dict, variants: list[str]) -> dict[str, dict]:
     """Per variant over the environments it ran on: the IQM of normalised scores with its
@@ -275,50 +200,6 @@ def improvements(scores: dict, variants: list[str], algos: dict[str, str]) -> li
                 found.append((x, y, aggregate.probability_of_improvement(xs, ys), *aggregate.improvement_interval(xs, ys)))
     return found
 
-
-def _aggregate_section(envs: list[str], summary: dict, scores: dict, variants: list[str], algos: dict) -> list[str]:
-    ranged = [env for env in envs if aggregate.score_range(env)]
-    unranged = [env for env in envs if env not in ranged]
-    lines = [
-        "## Across environments",
-        "",
-        "Normalised score = (final return - low) / (high - low), with fixed ranges per environment "
-        "(never rescaled between this report's variants):",
-        "",
-        "| env | low | high | from |",
-        "|---|---|---|---|",
-        *(f"| {env} | {aggregate.score_range(env)[0]:g} | {aggregate.score_range(env)[1]:g} | {aggregate.score_range(env)[2]} |"
-          for env in ranged),
-        "",
-    ]  # fmt: skip
-    if unranged:
-        lines += [f"Left out, having no fixed range: {', '.join(unranged)}.", ""]
-    table = aggregates(scores, variants)
-    if table:
-        lines += [
-            "Interquartile mean (IQM) of the normalised scores of all runs of a variant, pooled over "
-            f"environments, with its {aggregate.CONFIDENCE:.0%} stratified bootstrap interval "
-            "(the runs of each environment resampled on their own), as in Agarwal et al. (2021):",
-            "",
-            "| variant | IQM [95% CI] | mean | environments | runs |",
-            "|---|---|---|---|---|",
-            *(f"| {v} | {t['iqm']:.3f} [{t['low']:.3f}, {t['high']:.3f}] | {t['mean']:.3f} | {t['envs']} | {t['runs']} |"
-              for v, t in table.items()),
-            "",
-        ]  # fmt: skip
-    found = improvements(scores, variants, algos)
-    if found:
-        lines += [
-            "Probability of improvement: the chance that a run of the RPO variant scores above a run of "
-            "the baseline on the same environment, averaged over environments, with its stratified "
-            "bootstrap interval (above 0.5: RPO tends to do better):",
-            "",
-            "| RPO variant | baseline | P(RPO > baseline) [95% CI] |",
-            "|---|---|---|",
-            *(f"| {x} | {y} | {p:.3f} [{low:.3f}, {high:.3f}] |" for x, y, p, low, high in found),
-            "",
-        ]
-    return lines
 
 
 def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict | None = None) -> list[str]:
@@ -377,9 +258,9 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
         "",
-        *_result_tables(summary, envs, variants),
-        *reference.section(summary, published, algos, _cell),
-        *_aggregate_section(envs, summary, scores, variants, algos),
+        *tables.result_tables(summary, envs, variants),
+        *reference.section(summary, published, algos, tables.cell),
+        *tables.aggregate_section(envs, aggregates(scores, variants), improvements(scores, variants, algos)),
         *(f"![{name}]({name})" for name in written),
         "",
     ]
@@ -426,7 +307,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         "",
         "| runs | seeds | final return (mean ± std [95% CI]) |",
         "|---|---|---|",
-        *(f"| {label} | {stats['seeds']} | {_cell(stats, 'return')} |" for label, stats in finals.items()),
+        *(f"| {label} | {stats['seeds']} | {tables.cell(stats, 'return')} |" for label, stats in finals.items()),
         "",
         *(f"![{name}]({FIGURES_DIR}/{name})" for name in written),
         "",

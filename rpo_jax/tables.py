@@ -1,0 +1,136 @@
+"""The report's tables (Markdown), from the statistics `rpo_jax.report` computes: final return,
+entropy, late training and evaluation per environment and variant, and the comparison across
+environments. Every cell shows its spread: mean ± sample std over seeds [95% interval]."""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+from rpo_jax import aggregate
+from rpo_jax.scores import with_spread
+
+
+def cell(stats: dict, name: str, digits: int = 2) -> str:
+    """`stats`' NAME_mean ± NAME_std [NAME_low, NAME_high]; the mean alone for one seed."""
+    # One seed has no spread to show: a "± 0.00" would read as a measured one.
+    mean, std, low, high = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std", "low", "high"))
+    return with_spread(mean, f" ± {std} [{low}, {high}]", stats["seeds"])
+
+
+def table(envs: Sequence[str], variants: Sequence[str], cells: dict, bold: dict) -> list[str]:
+    """A row per environment, a column per variant: `cells[env, variant]`, in bold where
+    `bold[env]` is the variant."""
+    lines = ["| env | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
+    for env in envs:
+        row = []
+        for variant in variants:
+            text = cells.get((env, variant), "")
+            row.append(f"**{text}**" if text and bold.get(env) == variant else text)
+        lines.append(f"| {env} | " + " | ".join(row) + " |")
+    return lines
+
+
+def best(summary: dict, cells: dict, env: str, field: str) -> str | None:
+    """The variant of `env` among `cells` with the highest `summary[env, variant][field]`."""
+    return max((v for e, v in cells if e == env), key=lambda v: summary[env, v][field], default=None)
+
+
+def result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """The final return, final entropy and late-training tables with their explanations."""
+    returns = {key: cell(stats, "return") for key, stats in summary.items()}
+    entropies = {key: cell(stats, "entropy") for key, stats in summary.items()}
+    kept = {
+        key: with_spread(f"{s['kept']:.3f}", f" ({s['kept_worst_seed']:.3f})", s["seeds"])
+        for key, s in summary.items()
+        if not math.isnan(s["kept"])
+    }
+    return [
+        "## Final return",
+        "",
+        "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
+        f"and, in brackets, the {aggregate.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
+        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed); the best mean "
+        "of each environment in bold.",
+        "",
+        *table(envs, variants, returns, {env: best(summary, summary, env, "return_mean") for env in envs}),
+        "",
+        "## Final policy entropy",
+        "",
+        "Entropy of the policy summed over action dimensions, averaged the same way; the highest in bold.",
+        "",
+        *table(envs, variants, entropies, {env: best(summary, summary, env, "entropy_mean") for env in envs}),
+        "",
+        "## Late training",
+        "",
+        "The return curve, averaged over windows of 10% of the logged updates: its last window as a "
+        "fraction of its best one, for the mean over seeds and (in brackets, with several seeds) the "
+        "worst seed. 1.000 means the return never fell back from its best; blank where the best "
+        "window is not positive.",
+        "",
+        *table(envs, variants, kept, {env: best(summary, kept, env, "kept") for env in envs}),
+        "",
+        *eval_table(summary, envs, variants),
+    ]
+
+
+def eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """The evaluation return's table, where some variant was evaluated during training."""
+    evaluated = {key: cell(stats, "eval") for key, stats in summary.items() if "eval_mean" in stats}
+    if not evaluated:
+        return []
+    return [
+        "## Evaluation return",
+        "",
+        "The last evaluation during training (--eval-every): the deterministic policy's return on fresh "
+        "episodes with the environment's own rewards, mean ± sample std over seeds [95% CI]; blank where "
+        "a variant was not evaluated.",
+        "",
+        *table(envs, variants, evaluated, {env: best(summary, evaluated, env, "eval_mean") for env in envs}),
+        "",
+    ]
+
+def aggregate_section(envs: list[str], iqms: dict[str, dict], found: list[tuple[str, str, float, float, float]]) -> list[str]:
+    """The comparison across environments: the score ranges, the IQM of each variant's normalised
+    scores (`iqms`, from `report.aggregates`) and the probabilities of improvement (`found`, from
+    `report.improvements`)."""
+    ranged = [env for env in envs if aggregate.score_range(env)]
+    unranged = [env for env in envs if env not in ranged]
+    lines = [
+        "## Across environments",
+        "",
+        "Normalised score = (final return - low) / (high - low), with fixed ranges per environment "
+        "(never rescaled between this report's variants):",
+        "",
+        "| env | low | high | from |",
+        "|---|---|---|---|",
+        *(f"| {env} | {aggregate.score_range(env)[0]:g} | {aggregate.score_range(env)[1]:g} | {aggregate.score_range(env)[2]} |"
+          for env in ranged),
+        "",
+    ]  # fmt: skip
+    if unranged:
+        lines += [f"Left out, having no fixed range: {', '.join(unranged)}.", ""]
+    if iqms:
+        lines += [
+            "Interquartile mean (IQM) of the normalised scores of all runs of a variant, pooled over "
+            f"environments, with its {aggregate.CONFIDENCE:.0%} stratified bootstrap interval "
+            "(the runs of each environment resampled on their own), as in Agarwal et al. (2021):",
+            "",
+            "| variant | IQM [95% CI] | mean | environments | runs |",
+            "|---|---|---|---|---|",
+            *(f"| {v} | {t['iqm']:.3f} [{t['low']:.3f}, {t['high']:.3f}] | {t['mean']:.3f} | {t['envs']} | {t['runs']} |"
+              for v, t in iqms.items()),
+            "",
+        ]  # fmt: skip
+    if found:
+        lines += [
+            "Probability of improvement: the chance that a run of the RPO variant scores above a run of "
+            "the baseline on the same environment, averaged over environments, with its stratified "
+            "bootstrap interval (above 0.5: RPO tends to do better):",
+            "",
+            "| RPO variant | baseline | P(RPO > baseline) [95% CI] |",
+            "|---|---|---|",
+            *(f"| {x} | {y} | {p:.3f} [{low:.3f}, {high:.3f}] |" for x, y, p, low, high in found),
+            "",
+        ]
+    return lines
