@@ -82,9 +82,10 @@ class Placement:
         return {"placement": self.kind, "devices": self.count, "padded_runs": self.padded_runs, "processes": self.processes}
 
     def make_trainer(self, config: Config, env: envs.Env) -> ppo.Trainer:
+        """The trainer of one device's share of the runs; `config` is a plan's, validated already."""
         if self.kind == "envs":
-            return ppo.make_trainer(config, env, axis_name=AXIS, env_shards=self.count)
-        return ppo.make_trainer(config, env)
+            return ppo.build_trainer(config, env, axis_name=AXIS, env_shards=self.count)
+        return ppo.build_trainer(config, env)
 
     def _sharding(self) -> NamedSharding:
         return NamedSharding(self.mesh, PartitionSpec(AXIS))

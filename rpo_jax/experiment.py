@@ -32,7 +32,9 @@ from rpo_jax.envs import dmc_tasks
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_json
 from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
-from rpo_jax.spec import JOINING_FIELDS, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse
+from rpo_jax.spec import (
+    JOINING_FIELDS, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse, refuse_old_flags,
+)  # fmt: skip
 
 PROG = "python -m rpo_jax.experiment"
 
@@ -150,6 +152,8 @@ class ExperimentArgs:
 
 # Flags of rpo_jax.train that an experiment refuses: its jobs sweep, and it trains in one process.
 NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
+# The flags of experiments before they took rpo_jax.train's names, and what became of them.
+OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
 # experiments recorded before they could be given continue.
 RECORDED_WHERE_GIVEN = {"seed": 1, "log_every": None, "devices": None, "shard_envs": False}
@@ -157,6 +161,7 @@ RECORDED_WHERE_GIVEN = {"seed": 1, "log_every": None, "devices": None, "shard_en
 
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:
     """The flags as ExperimentArgs; bad input raises UsageError with tyro's message as one line."""
+    refuse_old_flags(argv, OLD_FLAGS)
     args = parse(ExperimentArgs, argv, None, PROG)
     return dataclasses.replace(args, given=frozenset(given_fields(argv)))
 
@@ -286,44 +291,49 @@ def job_run(definition: dict, job: Job, directory: Path | None) -> RunSpec:
     return RunSpec(out=directory, sweep=tuple(job.sweep_specs()), **given)
 
 
-def check_jobs(definition: dict, jobs: Sequence[Job]) -> None:
-    """Refuses, before the experiment writes anything, a definition that one of its runs would refuse."""
+def check_jobs(definition: dict, jobs: Sequence[Job]) -> dict[tuple[str, str], list[dict[str, float]]]:
+    """Refuses, before the experiment writes anything, a definition that one of its runs would
+    refuse; returns each run's sweep grid by (environment, job name), for `job_plan`."""
     from rpo_jax import plan
 
+    grids = {}
     for env in definition["envs"]:
         for job in jobs:
             _, config = job_config(definition, env, job)
             try:
-                plan.check_new(env, config, job_run(definition, job, None))
+                grids[env, job.name] = plan.check_new(env, config, job_run(definition, job, None))
             except UsageError as error:
                 raise UsageError(f"{env} {job.name}: {error}") from None
+    return grids
 
 
-def job_plan(definition: dict, env: str, job: Job, directory: Path) -> Any:
-    """The training run of `job` on `env`, as a plan."""
+def job_plan(definition: dict, env: str, job: Job, directory: Path, grid: Sequence[dict[str, float]]) -> Any:
+    """The training run of `job` on `env`, as a plan; `grid` is its sweep's, as `check_jobs` found it."""
     from rpo_jax import plan
 
     preset, config = job_config(definition, env, job)
     processes = Processes(devices=definition.get("devices"), shard_envs=definition.get("shard_envs", False))
-    return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset)
+    return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset, grid)
 
 
 def run_experiment(args: ExperimentArgs) -> Path:
     definition = resolve(args)
     out = args.run.out or Path("experiments") / args.name
     jobs = selected_jobs(args)  # experiment.json holds the same, prepare_out checks it
-    check_jobs(definition, jobs)
+    grids = check_jobs(definition, jobs)
     prepare_out(out, definition, write=False)  # refused before the lock creates the directory
     with hold_lock(out):
         prepare_out(out, definition)
-        run_jobs(args, out, definition, jobs)
+        run_jobs(args, out, definition, jobs, grids)
         report.build(out, [out])
     return out
 
 
-def run_jobs(args: ExperimentArgs, out: Path, definition: dict, jobs: Sequence[Job]) -> None:
+def run_jobs(
+    args: ExperimentArgs, out: Path, definition: dict, jobs: Sequence[Job], grids: dict[tuple[str, str], list[dict[str, float]]]
+) -> None:  # fmt: skip
     """Every (environment, job) run not finished yet, resumed where it started; results.csv
-    after each."""
+    after each. `grids`: each run's sweep grid, from `check_jobs`."""
     from rpo_jax import plan
     from rpo_jax.train import train_with_display
 
@@ -340,7 +350,7 @@ def run_jobs(args: ExperimentArgs, out: Path, definition: dict, jobs: Sequence[J
         else:
             # Killed before its config was written: nothing of the run exists yet.
             shutil.rmtree(directory, ignore_errors=True)
-            run_plan = job_plan(definition, env, job, directory)
+            run_plan = job_plan(definition, env, job, directory, grids[env, job.name])
             print(f"{prefix}: training", flush=True)
         group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
         summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)

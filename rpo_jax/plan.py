@@ -93,12 +93,15 @@ class RunPlan:
 
 
 def new_plan(
-    env: str, config: Config, run: RunSpec, processes: Processes | None = None, preset: str | None = None
+    env: str, config: Config, run: RunSpec, processes: Processes | None = None, preset: str | None = None,
+    grid: Sequence[dict[str, float]] | None = None,
 ) -> RunPlan:  # fmt: skip
     """A plan for the new run directory `run.out` on `processes`' devices (None: all of this
-    process's), checked before anything is written."""
+    process's), checked before anything is written. `grid`: what `check_new` returned for the
+    same arguments, where the caller checked them first (an experiment, all its runs), so that
+    they are checked once."""
     processes = processes or Processes()
-    grid = check_new(env, config, run)
+    grid = check_new(env, config, run) if grid is None else grid
     if is_primary():  # the one process that writes it (the others may find it begun)
         if not RunDir(run.out).is_new():
             raise UsageError(f"--out {run.out} already exists and is not an empty directory; choose a new one or --resume it")

@@ -212,8 +212,13 @@ class Trainer:
 
 def make_trainer(config: Config, env: envs.Env, axis_name: str | None = None, env_shards: int = 1) -> Trainer:
     """The trainer of `config` on `env`; with `axis_name`, one device's part of a run whose
-    environments are split in `env_shards` equal shares over that device axis."""
-    config.validate()
+    environments are split in `env_shards` equal shares over that device axis. A bad config is
+    refused (UsageError)."""
+    return build_trainer(config.validate(), env, axis_name, env_shards)
+
+
+def build_trainer(config: Config, env: envs.Env, axis_name: str | None = None, env_shards: int = 1) -> Trainer:
+    """`make_trainer` for a config validated already (a plan's, `rpo_jax.plan`)."""
     actor, critic = make_networks(config, env.spec.action_size)
     wrapped = wrap_for_training(env, config, env_shards, axis_name)
     return Trainer(config, wrapped, actor, critic, make_optimizer(config), axis_name)

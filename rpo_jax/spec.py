@@ -12,14 +12,17 @@ import dataclasses
 import io
 import re
 from pathlib import Path
-from typing import Literal, Sequence, TypeVar
+from typing import Annotated, Literal, Sequence, TypeVar
 
 import tyro
 
 from rpo_jax.config import PRESETS
 from rpo_jax.errors import UsageError
+from rpo_jax.hyperparams import SWEEPABLE
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+# --sweep's help names the hyperparameters from their one declaration (`hyperparams.Hyperparams`).
+SWEEP_HELP = f"NAME=V1,V2,...: every value x every other sweep x seeds in one program; NAME in {', '.join(SWEEPABLE)}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,9 +35,7 @@ class RunSpec:
     """first seed; seed i of --num-seeds is seed + i"""
     num_seeds: int = 1
     """seeds trained together in one vmapped program"""
-    sweep: tyro.conf.UseAppendAction[tuple[str, ...]] = ()
-    """NAME=V1,V2,... (repeatable): every value x every other sweep x seeds in one program;
-    NAME in rpo_alpha, ent_coef, lr, drac_coef"""
+    sweep: tyro.conf.UseAppendAction[Annotated[tuple[str, ...], tyro.conf.arg(help=SWEEP_HELP)]] = ()
     log_every: int | None = None
     """write metrics every N updates; None: about 100 lines per seed"""
     checkpoint_every: int | None = None
@@ -109,6 +110,15 @@ def parse(cls: type[Args], argv: Sequence[str], default: Args | None, prog: str)
         if exit.code in (0, None):  # --help, printed on stdout
             raise
         raise UsageError(one_line(captured.getvalue())) from None
+
+
+def refuse_old_flags(argv: Sequence[str], old: dict[str, str]) -> None:
+    """Refuses a flag of an earlier version by its name, saying what became of it: `old` maps
+    the flag to the rest of the line ("--seeds": "was renamed --num-seeds")."""
+    for token in argv:
+        name = token.partition("=")[0]
+        if name in old:
+            raise UsageError(f"{name} {old[name]}")
 
 
 def given_value(argv: Sequence[str], flag: str) -> str | None:

@@ -1,6 +1,7 @@
 """The command line end to end on a tiny run, and its handling of bad input."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -167,3 +168,27 @@ def test_report_of_one_training_run_draws_its_curves(run_dir, tmp_path):
     for name in ("return-entropy.png", "losses.png"):
         figure = tmp_path / "figures" / name
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"(figures/{name})" in text
+
+
+def test_a_plan_validates_its_config_once_and_a_direct_make_trainer_validates_too(tmp_path, monkeypatch):
+    from rpo_jax import plan as plans
+    from rpo_jax.spec import RunSpec
+
+    validated = []
+    validate = Config.validate
+    monkeypatch.setattr(Config, "validate", lambda config: validated.append(config) or validate(config))
+    plan = plans.new_plan("cartpole", Config(), RunSpec(out=tmp_path / "run"))
+    plan.placement.make_trainer(plan.config, envs.make_env("cartpole"))
+    assert len(validated) == 1
+    with pytest.raises(ValueError, match="num_envs"):  # UsageError
+        ppo.make_trainer(Config(num_envs=0), envs.make_env("cartpole"))
+
+
+def test_the_sweep_help_names_every_sweepable_hyperparameter(capsys):
+    from rpo_jax.hyperparams import SWEEPABLE
+
+    with pytest.raises(SystemExit):
+        train.main(["--help"])
+    text = re.sub(r"[│|\s]+", " ", capsys.readouterr().out)
+    sweep = text[text.index("--sweep STR") : text.index("--log-every")]
+    assert all(name in sweep for name in SWEEPABLE), sweep

@@ -282,3 +282,37 @@ def test_an_experiment_recorded_with_the_old_flag_names_continues(uninterrupted,
     (out / "experiment.json").write_text(json.dumps({**old, "num_envs": None}))  # another experiment
     assert experiment.main(["ppo-vs-rpo", *TINY, "--out", str(out)]) == 2
     assert "holds a different experiment (differs in config)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("old, new", [("--seeds", "--num-seeds"), ("--timesteps", "--total-timesteps")])
+def test_the_old_flag_names_are_refused_with_the_new_one(capsys, old, new):
+    assert experiment.main(["ppo-vs-rpo", "--envs", "cartpole", f"{old}=3"]) == 2
+    assert capsys.readouterr().err == f"error: {old} was renamed {new}\n"
+
+
+def counting(monkeypatch, owner, name: str, calls: dict) -> None:
+    """Replaces owner.name by a wrapper that counts its calls in calls[name]."""
+    original = getattr(owner, name)
+
+    def counted(*args):
+        calls[name] = calls.get(name, 0) + 1
+        return original(*args)
+
+    monkeypatch.setattr(owner, name, counted)
+
+
+def test_an_experiment_parses_each_sweep_once_and_validates_each_config_once(tmp_path, monkeypatch):
+    calls: dict[str, int] = {}
+    counting(monkeypatch, plan_module, "parse_sweeps", calls)
+    counting(monkeypatch, experiment.Config, "validate", calls)
+    args = experiment.parse_args(["entropy-reg", "--envs", "cartpole", "--num-seeds", "1", "--total-timesteps", "12800"])
+    definition, jobs = experiment.resolve(args), experiment.selected_jobs(args)
+    grids = experiment.check_jobs(definition, jobs)
+    # Each job's config, and each point of the ppo job's sweep of ent_coef.
+    checked = {"parse_sweeps": len(jobs), "validate": len(jobs) + len(experiment.ENTROPY_COEFS)}
+    assert calls == checked
+    for job in jobs:
+        plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name, grids["cartpole", job.name])
+        assert len(plan.grid) == len(grids["cartpole", job.name])
+        plan.placement.make_trainer(plan.config, envs.make_env("cartpole"))
+    assert calls == checked  # planned and built without checking again
