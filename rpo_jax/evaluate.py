@@ -1,9 +1,10 @@
 """Evaluate a trained policy on fresh episodes, and optionally record one as a video.
 
-    python -m rpo_jax.evaluate runs/cartpole-rpo-20261123-101500 --episodes 20
-    python -m rpo_jax.evaluate RUN_DIR --deterministic --video cartpole.mp4
+    python -m rpo_jax.evaluate runs/cartpole-rpo-20261123-101500 --eval-episodes 20
+    python -m rpo_jax.evaluate RUN_DIR --stochastic --video cartpole.mp4
 
-Returns are the environment's own rewards (no reward scaling or normalisation), one episode
+The policy acts deterministically (the location of its distribution) unless --stochastic; the
+result says which. Returns are the environment's own rewards (no reward scaling or normalisation), one episode
 per parallel environment, each to its end or the time limit.
 
 Videos are drawn offscreen by MuJoCo's renderer. On a machine without a display it needs an
@@ -16,14 +17,19 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 from __future__ import annotations
 
 import copy
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Annotated, Sequence
 
-from rpo_jax.cli import ArgumentParser
+import tyro
+
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
+from rpo_jax.rundir import check_new_file
+from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
+
+PROG = "python -m rpo_jax.evaluate"
 
 # JAX, MuJoCo and the policy are imported by the functions that use them, so that --help is quick.
 if TYPE_CHECKING:
@@ -136,57 +142,83 @@ def render(env: envs.Env, positions: list[np.ndarray], width: int, height: int) 
     return frames
 
 
-def build_parser() -> ArgumentParser:
-    parser = ArgumentParser(prog="python -m rpo_jax.evaluate", description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="a directory written by rpo_jax.train")
-    parser.add_argument("--episodes", type=int, default=10, help="episodes to average over (default 10)")
-    parser.add_argument("--deterministic", action="store_true", help="act with the policy's location, not a sample")
-    parser.add_argument("--run", type=int, default=0, help="which of the directory's runs (index in config.json)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
-    parser.add_argument("--video", type=Path, metavar="OUT.mp4", help="also render one episode to this file")
-    return parser
+@dataclasses.dataclass(frozen=True)
+class EvaluateArgs:
+    """Evaluate a trained policy on fresh episodes: its deterministic action (the location of its
+    distribution, as in-training evaluation and the exports act), or with --stochastic a sample."""
+
+    trained: tyro.conf.OmitArgPrefixes[TrainedRun]
+    eval_episodes: Annotated[EvalEpisodes, tyro.conf.arg(aliases=("--episodes",))] = 10
+    stochastic: bool = False
+    """sample each action from the policy's distribution instead of taking its location"""
+    seed: int = 0
+    """seed of the evaluation episodes"""
+    video: Annotated[Path | None, tyro.conf.arg(metavar="OUT.mp4")] = None
+    """also render one episode to this file"""
+
+
+# evaluate's flags before acting deterministically became the default.
+OLD_FLAGS = {"--deterministic": "is the default now (--stochastic samples instead)"}
+
+
+def parse_args(argv: Sequence[str]) -> EvaluateArgs:
+    """The flags as EvaluateArgs, checked; bad input raises UsageError as one line."""
+    refuse_old_flags(argv, OLD_FLAGS)
+    args = parse(EvaluateArgs, argv, None, PROG)
+    if args.eval_episodes < 1:
+        raise UsageError(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
+    if not 0 <= args.seed < 2**32:
+        raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
+    return args
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line: exit code 0, or 2 for bad input."""
     with command_failures() as exit:
-        args = build_parser().parse_args(argv)
-        if args.episodes < 1:
-            raise UsageError(f"--episodes must be >= 1, got {args.episodes}")
-        run_dir = RunDir(args.run_dir)
-        if not run_dir.has_params():
-            raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
-        if args.video:
-            check_video_path(args.video)
-        if not 0 <= args.seed < 2**32:
-            raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
-        saved = run_dir.read_config()
-        if not 0 <= args.run < len(saved["runs"]):
-            raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
-        import jax
-
-        from rpo_jax import envs
-        from rpo_jax.envs.registry import check_import_outside
-        from rpo_jax.policy import load_policy
-
-        check_import_outside(saved["env"], args.run_dir)
-        try:
-            env = envs.make_env(saved["env"])
-        except UsageError as error:
-            raise UsageError(f"{args.run_dir}: its environment cannot be rebuilt: {error}") from None
-        if args.video:
-            check_video(env)
-        policy = load_policy(args.run_dir, args.run)
-        key = jax.random.PRNGKey(args.seed)
-        returns = episode_returns(env, policy, args.episodes, key, args.deterministic)
-        mode = "deterministic" if args.deterministic else "stochastic"
-        print(
-            f"{saved['env']} run {args.run} (seed {saved['runs'][args.run]['seed']}), {mode} policy: "
-            f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.episodes} episodes"
-        )
-        if args.video:
-            total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)
-            print(f"video: {args.video} ({length} steps, return {total:.2f})")
+        run_command(parse_args(sys.argv[1:] if argv is None else argv))
     return exit.code
+
+
+def run_command(args: EvaluateArgs) -> None:
+    saved = args.trained.record()
+    if args.video:
+        check_video_path(args.video)
+    import jax
+
+    from rpo_jax.policy import load_policy
+
+    env = rebuilt_env(saved["env"], args.trained.run_dir)
+    if args.video:
+        check_video(env)
+    policy = load_policy(args.trained.run_dir, args.trained.run)
+    key = jax.random.PRNGKey(args.seed)
+    deterministic = not args.stochastic
+    returns = episode_returns(env, policy, args.eval_episodes, key, deterministic)
+    run = args.trained.run
+    print(
+        f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "
+        f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.eval_episodes} episodes"
+    )
+    if args.video:
+        total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), deterministic)
+        print(f"video: {args.video} ({length} steps, return {total:.2f})")
+
+
+def policy_mode(deterministic: bool) -> str:
+    """How a result names the policy it measured."""
+    return "deterministic" if deterministic else "stochastic"
+
+
+def rebuilt_env(name: str, run_dir: Path) -> envs.Env:
+    """The run's environment, built again; never from code inside the run directory."""
+    from rpo_jax import envs
+    from rpo_jax.envs.registry import check_import_outside
+
+    check_import_outside(name, run_dir)
+    try:
+        return envs.make_env(name)
+    except UsageError as error:
+        raise UsageError(f"{run_dir}: its environment cannot be rebuilt: {error}") from None
 
 
 if __name__ == "__main__":

@@ -307,8 +307,11 @@ def check_jobs(definition: dict, jobs: Sequence[Job]) -> dict[tuple[str, str], l
     return grids
 
 
-def job_plan(definition: dict, env: str, job: Job, directory: Path, grid: Sequence[dict[str, float]]) -> Any:
-    """The training run of `job` on `env`, as a plan; `grid` is its sweep's, as `check_jobs` found it."""
+def job_plan(
+    definition: dict, env: str, job: Job, directory: Path, grid: Sequence[dict[str, float]] | None = None
+) -> Any:  # fmt: skip
+    """The training run of `job` on `env`, as a plan; `grid` is its sweep's, as `check_jobs`
+    found it (None: checked here)."""
     from rpo_jax import plan
 
     preset, config = job_config(definition, env, job)

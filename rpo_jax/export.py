@@ -41,18 +41,20 @@ are written, never over an existing file.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
 import sys
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Annotated, Any, Sequence
 
 import numpy as np
+import tyro
 
-from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
+from rpo_jax.rundir import check_new_file
+from rpo_jax.spec import TrainedRun, parse
 
 ACTIVATIONS = {
     "tanh": np.tanh,
@@ -161,27 +163,26 @@ def activation_nodes(activation: str, x: str, out: str) -> list[Any]:
     return [helper.make_node(operator, [x], [out], **({"alpha": 1.0} if activation == "elu" else {}))]
 
 
-def build_parser() -> ArgumentParser:
-    parser = ArgumentParser(prog="python -m rpo_jax.export", description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="a directory written by rpo_jax.train")
-    parser.add_argument("--run", type=int, default=0, help="which of the directory's runs (index in config.json)")
-    parser.add_argument("--onnx", type=Path, metavar="OUT.onnx", help="write the policy as an ONNX model (the onnx extra)")
-    parser.add_argument("--npz", type=Path, metavar="OUT.npz", help="write the policy's arrays for NumPy")
-    return parser
+@dataclasses.dataclass(frozen=True)
+class ExportArgs:
+    """Export a trained policy for use without Python's JAX: one run's deterministic policy with its
+    observation normalisation, as an ONNX model and as plain NumPy arrays."""
+
+    trained: tyro.conf.OmitArgPrefixes[TrainedRun]
+    onnx: Annotated[Path | None, tyro.conf.arg(metavar="OUT.onnx")] = None
+    """write the policy as an ONNX model (the onnx extra)"""
+    npz: Annotated[Path | None, tyro.conf.arg(metavar="OUT.npz")] = None
+    """write the policy's arrays for NumPy"""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line: exit code 0, or 2 for bad input."""
     with command_failures() as exit:
-        args = build_parser().parse_args(argv)
-        run_dir = RunDir(args.run_dir)
-        if not run_dir.has_params():
-            raise UsageError(f"{args.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
+        args = parse(ExportArgs, sys.argv[1:] if argv is None else argv, None, "python -m rpo_jax.export")
+        args.trained.record()
         outputs = {"--onnx": args.onnx, "--npz": args.npz}
         check_outputs({flag: path for flag, path in outputs.items() if path is not None})
-        runs = len(run_dir.read_config()["runs"])
-        if not 0 <= args.run < runs:
-            raise UsageError(f"--run must be in [0, {runs}), got {args.run}")
-        arrays = policy_arrays(args.run_dir, args.run)
+        arrays = policy_arrays(args.trained.run_dir, args.trained.run)
         contents = {}
         if args.onnx:
             contents[args.onnx] = onnx_bytes(arrays)

@@ -17,17 +17,18 @@ their directory's name so that the experiments overlay. Given a training run's d
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import sys
 from collections import defaultdict
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Annotated, Iterable, Sequence
 
 import numpy as np
+import tyro
 
 from rpo_jax import aggregate, figures, reference, tables
-from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
@@ -35,6 +36,7 @@ from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
 )  # fmt: skip
 from rpo_jax.scores import kept_fraction, tail_mean
+from rpo_jax.spec import parse
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -316,19 +318,25 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
     return out / REPORT_FILE
 
 
+@dataclasses.dataclass(frozen=True)
+class ReportArgs:
+    """Tables and figures from experiment results, or from one training run: report.md and figures/."""
+
+    dirs: tyro.conf.Positional[Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR", help_behavior_hint="(one or more)")]]
+    """experiment directories with results.csv, or one run directory"""
+    out: Path | None = None
+    """where report.md and figures/ go; None: DIR, when only one is given"""
+    reference: Annotated[Path | None, tyro.conf.arg(metavar="CSV")] = None
+    """published figures to set beside ours (env, algo, mean, std, seeds, budget, source), e.g.
+    benchmarks/reference/cleanrl_rpo_8m.csv"""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m rpo_jax.report", description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "dirs", nargs="+", type=Path, metavar="DIR", help="experiment directories with results.csv, or one run directory"
-    )
-    parser.add_argument("--out", type=Path, help="where report.md and figures/ go (default: DIR when only one)")
-    parser.add_argument(
-        "--reference", type=Path, metavar="CSV",
-        help="published figures to set beside ours (env, algo, mean, std, seeds, budget, source), "
-        "e.g. benchmarks/reference/cleanrl_rpo_8m.csv",
-    )  # fmt: skip
+    """The command line: exit code 0, or 2 for bad input."""
     with command_failures() as exit:
-        args = parser.parse_args(argv)
+        args = parse(ReportArgs, sys.argv[1:] if argv is None else argv, None, "python -m rpo_jax.report")
+        if not args.dirs:
+            raise UsageError("give DIR: one or more experiment directories with results.csv, or one run directory")
         if args.out is None and len(args.dirs) > 1:
             raise UsageError("--out is needed when overlaying several directories")
         run_dir = RunDir(args.dirs[0])

@@ -2,7 +2,8 @@
 where and in how many processes it trains (`Processes`) and how it reports (`Tracking`), beside
 the algorithm's `Config`. `rpo_jax.train` and `rpo_jax.experiment` nest these dataclasses in their
 arguments, so that what they share has the same flags (tyro reads them, without prefixes), and
-`rpo_jax.plan` builds a run from them.
+`rpo_jax.plan` builds a run from them. The commands that read a trained run (evaluate, export)
+nest `TrainedRun`; every command parses its flags with `parse`.
 """
 
 from __future__ import annotations
@@ -12,15 +13,19 @@ import dataclasses
 import io
 import re
 from pathlib import Path
-from typing import Annotated, Literal, Sequence, TypeVar
+from typing import Annotated, Any, Literal, Sequence, TypeVar
 
 import tyro
 
 from rpo_jax.config import PRESETS
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import SWEEPABLE
+from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+# The flags that train, experiment and evaluate share beyond RunSpec's fields: declared once here.
+EvalEpisodes = Annotated[int, tyro.conf.arg(help="episodes per evaluation, on fresh environments with their own rewards")]
+RunDirectory = Annotated[Path, tyro.conf.arg(metavar="RUN_DIR", help="a directory written by rpo_jax.train")]
 # --sweep's help names the hyperparameters from their one declaration (`hyperparams.Hyperparams`).
 SWEEP_HELP = f"NAME=V1,V2,...: every value x every other sweep x seeds in one program; NAME in {', '.join(SWEEPABLE)}"
 
@@ -42,8 +47,7 @@ class RunSpec:
     """checkpoint every N environment steps per run; None: 10 per run for runs of 5M steps or more, else none; 0: never"""
     eval_every: int = 0
     """evaluate the deterministic policy every N env steps per run (in whole chunks of updates) and at the end; 0: never"""
-    eval_episodes: int = 10
-    """episodes per evaluation, on fresh environments with their own rewards"""
+    eval_episodes: EvalEpisodes = 10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,6 +75,25 @@ class Processes:
     """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
     compile_cache: bool = True
     """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedRun:
+    """The trained policy that evaluate and export read: one run of a finished training run's directory."""
+
+    run_dir: tyro.conf.Positional[RunDirectory]
+    run: int = 0
+    """which of the directory's runs (index in config.json)"""
+
+    def record(self) -> dict[str, Any]:
+        """config.json's record; refuses a directory without trained parameters, and a --run it lacks."""
+        run_dir = RunDir(self.run_dir)
+        if not run_dir.has_params():
+            raise UsageError(f"{self.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
+        saved = run_dir.read_config()
+        if not 0 <= self.run < len(saved["runs"]):
+            raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {self.run}")
+        return saved
 
 
 # The flags that make several processes train together.

@@ -197,7 +197,7 @@ def test_evaluation_of_a_trained_policy_beats_a_random_one(uninterrupted, capsys
     # Measured: trained about 470, uniform random actions about 10 (episodes end within ~20 steps).
     assert trained.mean() > 200 and uniform.mean() < 50
 
-    assert evaluate.main([str(run_dir), "--episodes", "8", "--deterministic"]) == 0
+    assert evaluate.main([str(run_dir), "--episodes", "8"]) == 0  # deterministic by default
     assert "cartpole run 0 (seed 1), deterministic policy: return" in capsys.readouterr().out
 
 

@@ -65,3 +65,22 @@ def test_the_rpo_jax_command_runs_each_command_and_refuses_unknown_ones(capsys):
 def test_the_console_script_is_declared():
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts == {"rpo-jax": "rpo_jax.__main__:main"}
+
+
+# The house limits on the package's size: a function fits on a screen, a module is read in one sitting.
+FUNCTION_LINES, MODULE_LINES = 60, 450
+
+
+def test_no_function_is_over_60_lines_and_no_module_over_450():
+    import ast
+
+    long_functions, long_modules = [], []
+    for path in sorted((ROOT / "rpo_jax").rglob("*.py")):
+        text = path.read_text()
+        name = path.relative_to(ROOT)
+        if len(text.splitlines()) > MODULE_LINES:
+            long_modules.append(f"{name} ({len(text.splitlines())} lines)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= FUNCTION_LINES:
+                long_functions.append(f"{name}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)")
+    assert not long_functions and not long_modules, (long_functions, long_modules)

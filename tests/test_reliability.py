@@ -552,6 +552,9 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
         ),
         (lambda out: None, ["--video", "no/such/dir/x.mp4"], "the directory"),
         (lambda out: None, ["--seed", str(2**32)], "--seed must be in [0, 2**32 - 1]"),
+        (lambda out: None, ["--eval-episodes", "0"], "--eval-episodes must be >= 1, got 0"),
+        (lambda out: None, ["--deterministic"], "--deterministic is the default now (--stochastic samples instead)"),
+        (lambda out: None, ["--run", "-1"], "--run must be in [0, 1), got -1"),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_damaged_runs_in_one_line(finished, tmp_path, capsys, damage_run, args, message):
@@ -574,6 +577,8 @@ def results_dir(tmp_path: Path) -> Path:
 
 def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys):
     directory = results_dir(tmp_path)
+    assert report.main([]) == 2
+    assert one_line(capsys) == "error: give DIR: one or more experiment directories with results.csv, or one run directory"
     results = directory / report.RESULTS_FILE
     good = results.read_text()
     results.write_text(good.replace(",policy_entropy", ",entropy"))

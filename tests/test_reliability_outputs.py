@@ -164,6 +164,35 @@ def test_evaluate_imports_a_module_outside_the_run_directory(finished, tmp_path,
     assert marker.exists() and f"{name}:make run 0" in capsys.readouterr().out
 
 
+def test_evaluate_acts_deterministically_unless_stochastic_and_says_which(finished, capsys):
+    from rpo_jax import envs
+
+    env, policy = envs.make_env("test/point_mass"), load_policy(finished)
+    printed = {}
+    for flags, mode in (([], "deterministic"), (["--stochastic"], "stochastic")):
+        assert evaluate.main([str(finished), "--eval-episodes", "3", *flags]) == 0
+        line = capsys.readouterr().out.strip()
+        assert line.startswith(f"test/point_mass run 0 (seed 1), {mode} policy: return "), line
+        printed[mode] = float(line.split("return ")[1].split()[0])
+        expected = evaluate.episode_returns(env, policy, 3, jax.random.PRNGKey(0), deterministic=mode == "deterministic")
+        assert printed[mode] == pytest.approx(float(expected.mean()), abs=0.006)
+    assert printed["deterministic"] != printed["stochastic"]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--run", "1", "--npz", "p.npz"], "error: --run must be in [0, 1), got 1"),
+        (["--npz", "p.npz", "--format", "onnx"], "error: Unrecognized options: --format"),
+    ],
+)
+def test_export_refuses_bad_flags_in_one_line(finished, tmp_path, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    assert export.main([str(finished), *args]) == 2
+    assert one_line(capsys).startswith(message)
+    assert list(tmp_path.iterdir()) == []
+
+
 # --------------------------------------------------------------------------------------------
 # export: the distribution recorded and sampled as the library samples it; output paths
 

@@ -56,7 +56,7 @@ def test_example_by_import_path_trains_resumes_exactly_and_evaluates(tmp_path, c
     capsys.readouterr()
     assert evaluate.main([str(out), "--episodes", "4"]) == 0
     line = capsys.readouterr().out.strip()
-    assert line.startswith(f"{EXAMPLE} run 0 (seed 1), stochastic policy: return ") and "over 4 episodes" in line
+    assert line.startswith(f"{EXAMPLE} run 0 (seed 1), deterministic policy: return ") and "over 4 episodes" in line
     # Each step's reward is minus a distance in a 2x2 square, over at most 100 steps.
     assert -300 < float(line.split("return ")[1].split()[0]) < 0
 
@@ -68,7 +68,7 @@ def test_example_by_registered_name_trains_and_evaluates(isolated_registry, tmp_
     assert goal_reach.main([*TINY, "--out", str(out)]) == 0
     assert "goal-reach" in envs.env_names() and envs.env_spec("goal-reach") == goal_reach.SPEC
     assert json.loads((out / "config.json").read_text())["env"] == "goal-reach"
-    assert "goal-reach run 0 (seed 1), stochastic policy: return " in capsys.readouterr().out
+    assert "goal-reach run 0 (seed 1), deterministic policy: return " in capsys.readouterr().out
     # In a process where the name is not registered, the run's environment cannot be rebuilt.
     del isolated_registry._REGISTRY["goal-reach"]
     assert evaluate.main([str(out)]) == 2
