@@ -13,7 +13,7 @@ import pytest
 from point_mass import PointMass
 from scipy import special, stats
 
-from rpo_jax import envs, ppo, train
+from rpo_jax import envs, loss, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution
 
@@ -100,7 +100,7 @@ def test_rpo_with_alpha_zero_is_ppo_for_every_distribution(kind, monkeypatch):
     config = dataclasses.replace(TINY, algo="rpo", dist=kind)
     rpo_params = one_update(config, rpo_alpha=0.0)
     with monkeypatch.context() as patch:  # plain PPO: no perturbation drawn or added at all
-        patch.setattr(ppo, "perturb_location", lambda loc, key, alpha: loc)
+        patch.setattr(loss, "perturb_location", lambda loc, key, alpha: loc)
         unperturbed_update = compiled_update.__wrapped__(config)  # traced while patched, not cached
         ppo_params = unperturbed_update(ppo.Hyperparams.from_config(config))[0].params
     assert_same_params(ppo_params, rpo_params)
