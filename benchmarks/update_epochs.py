@@ -14,7 +14,7 @@ import time
 
 import jax
 
-from rpo_jax import envs, ppo
+from rpo_jax import envs, loss, ppo
 from rpo_jax.config import PRESETS
 
 
@@ -32,11 +32,11 @@ def main() -> None:
     trainer = ppo.make_trainer(config, envs.make_env(args.env))
     state = jax.jit(jax.vmap(trainer.init))(jax.random.split(jax.random.PRNGKey(0), args.seeds))
 
-    def batch_of(s: ppo.TrainState) -> ppo.Batch:
+    def batch_of(s: ppo.TrainState) -> loss.Batch:
         traj = ppo.rollout(trainer, s.params, s.env_state, s.obs, s.key)[2]
         return ppo.make_batch(trainer, s.params, traj, s.value_stats)[0]
 
-    def epochs(s: ppo.TrainState, batch: ppo.Batch) -> tuple:
+    def epochs(s: ppo.TrainState, batch: loss.Batch) -> tuple:
         return ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, batch, s.key)
 
     batch = jax.jit(jax.vmap(batch_of))(state)

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from rpo_jax import devices, envs, ppo, train
+from rpo_jax import devices, envs, loss, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.devices import AXIS
 from rpo_jax.rundir import RunDir
@@ -89,7 +89,7 @@ def gradient_and_statistics(count: int) -> dict:
     mesh = mesh_of(count)
     # Every sample on exactly one device: equal shares of the minibatch along its leading axis.
     split_params, _, split_metrics = spread(lambda b: step(shared, b), mesh, (PartitionSpec(AXIS),))(batch)
-    grads = lambda trainer, b: jax.grad(ppo.ppo_loss, has_aux=True)(
+    grads = lambda trainer, b: jax.grad(loss.ppo_loss, has_aux=True)(
         state.params, trainer.actor, trainer.critic, b, key, config, state.hparams, trainer.axis_name
     )[0]
     one_grads = jax.jit(lambda b: grads(single, b))(batch)
