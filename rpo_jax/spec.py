@@ -23,7 +23,8 @@ from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
-# The flags that train, experiment and evaluate share beyond RunSpec's fields: declared once here.
+# Flags declared once for several commands: --eval-episodes (RunSpec's, and evaluate's) and the
+# run directory that evaluate and export read (`TrainedRun`).
 EvalEpisodes = Annotated[int, tyro.conf.arg(help="episodes per evaluation, on fresh environments with their own rewards")]
 RunDirectory = Annotated[Path, tyro.conf.arg(metavar="RUN_DIR", help="a directory written by rpo_jax.train")]
 # --sweep's help names the hyperparameters from their one declaration (`hyperparams.Hyperparams`).
