@@ -139,6 +139,7 @@ def interval_bars(
         if math.isnan(point) or math.isnan(low):
             axis.text(place, 0 if math.isnan(point) else point, text, rotation=90, ha="center", va="bottom", fontsize=7)
     axis.set_xticks(range(len(names)), [f"{name} (n={runs[name]})" for name in names], rotation=30, ha="right")
+    axis.set_xlim(-0.6, len(names) - 0.4)  # room for the texts of variants without a bar
     axis.set_ylabel(ylabel)
     axis.set_title(title)
     axis.grid(axis="y", alpha=0.3)
