@@ -5,7 +5,7 @@
     python -m rpo_jax.report runs/cartpole-rpo-20261123-101500
 
 Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes report.md and
-figures/ (PNG): per environment and variant the final return with its sample std and a 95%
+figures/ (PNG, and PDF beside each): per environment and variant the final return with its sample std and a 95%
 bootstrap confidence interval over seeds; across environments the interquartile mean of
 normalised scores and the probability that RPO improves on each baseline, with stratified
 bootstrap intervals (`rpo_jax.aggregate`); learning curves, interval bars, a performance

@@ -58,6 +58,10 @@ def test_every_figure_is_written_as_png_and_pdf_the_same_bytes_each_time(tmp_pat
     # The PDFs beside the PNGs are the report's own: building again over them is allowed.
     report.build(tmp_path, [tmp_path])
     assert {name: (tmp_path / report.FIGURES_DIR / f"{name}.pdf").read_bytes() for name in names} == first
+    # A file of the user's among them is not: nothing is overwritten that the report did not write.
+    (tmp_path / report.FIGURES_DIR / "notes.txt").write_text("mine")
+    with pytest.raises(report.UsageError, match="holds files the report did not write"):
+        report.build(tmp_path, [tmp_path])
 
 
 def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(tmp_path, drawn):
