@@ -83,7 +83,7 @@ def _draw_series(axis: Any, runs: list[list[dict]], metric: str, colour: Any, la
     low, high = aggregate.mean_intervals(values)
     if len(low) and not math.isnan(low[0]):
         axis.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
-    else:
+    elif len(values) > 1:  # one seed is its own mean
         for seed in values:
             axis.plot(steps, seed, color=colour, linewidth=0.6, alpha=0.45)
 
