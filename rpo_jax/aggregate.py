@@ -8,13 +8,17 @@ library, does not import with the project's pins (its `arch` dependency fails ag
 so its estimators are written here: a stratified bootstrap resamples the runs of each
 environment independently, which is what scipy does with one sample per environment.
 
+Too few runs give no estimate rather than a misleading one: an interval that would only restate
+the runs' range, or an IQM that trims nothing, is NaN here and `not_estimable` in the report.
+
 Normalised scores use fixed ranges per environment (`SCORE_RANGES`), never the report's own
 variants, so adding or removing a variant changes no one else's score.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+import math
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -52,20 +56,77 @@ def normalise(env: str, returns: np.ndarray) -> np.ndarray | None:
     return (np.asarray(returns, float) - low) / (high - low)
 
 
-def bootstrap_interval(samples: Sequence[np.ndarray], statistic: Callable[..., float], seed: int = 0) -> tuple[float, float]:
-    """95% percentile interval of `statistic(*samples)`, each sample resampled on its own (so
-    several samples make a stratified bootstrap). A sample of one value has no spread: the
-    interval is then the statistic itself."""
+# Whether a statistic can be estimated at all from the runs at hand. Each rule follows from the
+# statistic's definition; below it the report prints `not_estimable(k)` instead of a number.
+TAIL = (1 - CONFIDENCE) / 2
+# The interquartile mean cuts int(0.25 n) runs from each end (`scipy.stats.trim_mean`): below 4
+# runs it cuts none and is the plain mean, not an IQM.
+IQM_MIN_RUNS = 4
+
+
+def _collapse_chance(sizes: Sequence[int]) -> float:
+    """The chance that a resample draws one and the same run n times in every stratum of
+    `sizes` runs. For a statistic that rises with each run (a mean, an IQM), where that chance is
+    at least `TAIL`, the percentile interval's ends are the lowest and highest values the runs can
+    give at all (with one stratum, its smallest and largest seed): a restatement of the runs'
+    range, whatever the confidence asked for, not a confidence interval."""
+    return math.prod(float(n) ** -n for n in sizes)
+
+
+def interval_seeds_needed(strata: int = 1) -> int:
+    """The fewest runs per stratum for a percentile bootstrap interval at `CONFIDENCE` (4 for the
+    mean of one environment's seeds: 3 ** -3 = 3.7% still reaches the 2.5% tail)."""
+    runs = 2
+    while _collapse_chance([runs] * strata) >= TAIL:
+        runs += 1
+    return runs
+
+
+def _separation_chance(xs: Sequence[np.ndarray], ys: Sequence[np.ndarray]) -> float:
+    """The chance that, with X and Y alike, the runs of X and Y on every task separate entirely
+    (all of one above all of the other): 2 / C(n_x + n_y, n_x) per task. Separated runs keep
+    P(X > Y) at exactly 0 or 1 in every resample, a point 'interval' however few runs made it."""
+    return math.prod(2 / math.comb(len(x) + len(y), len(x)) for x, y in zip(xs, ys))
+
+
+def improvement_seeds_needed(tasks: int) -> int:
+    """The fewest runs per variant and task for which equal variants separate on every task by
+    chance less often than 1 - `CONFIDENCE` (4 seeds on one task: 2 / C(6, 3) = 10% at 3)."""
+    runs = 2
+    while _separation_chance([np.zeros(runs)] * tasks, [np.zeros(runs)] * tasks) >= 1 - CONFIDENCE:
+        runs += 1
+    return runs
+
+
+def not_estimable(needed: int, unit: str = "seeds") -> str:
+    """What the report prints for a statistic that the runs cannot estimate."""
+    return f"n/a (needs >= {needed} {unit})"
+
+
+def interval_text(low: float, high: float, needed: int, digits: int) -> str:
+    """"[low, high]", or why there is no interval (NaN ends) with the seeds it would need."""
+    return not_estimable(needed) if math.isnan(low) else f"[{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def _percentile_bootstrap(samples: Sequence[np.ndarray], statistic: Callable, vectorized: bool, seed: int) -> Any:
+    """scipy's percentile bootstrap at `CONFIDENCE`, each sample resampled on its own along axis 0."""
     from scipy import stats
 
-    point = float(statistic(*samples))
-    if all(len(sample) < 2 for sample in samples):
-        return point, point
     result = stats.bootstrap(
-        tuple(np.asarray(sample, float) for sample in samples), statistic, vectorized=False, paired=False,
+        tuple(np.asarray(sample, float) for sample in samples), statistic, vectorized=vectorized, paired=False, axis=0,
         n_resamples=RESAMPLES, confidence_level=CONFIDENCE, method="percentile", rng=np.random.default_rng(seed),
     )  # fmt: skip
-    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+    return result.confidence_interval
+
+
+def bootstrap_interval(samples: Sequence[np.ndarray], statistic: Callable[..., float], seed: int = 0) -> tuple[float, float]:
+    """95% percentile interval of `statistic(*samples)`, each sample resampled on its own (so
+    several samples make a stratified bootstrap); (NaN, NaN) where the samples are too small for
+    one (`interval_seeds_needed`)."""
+    if _collapse_chance([len(sample) for sample in samples]) >= TAIL:
+        return math.nan, math.nan
+    interval = _percentile_bootstrap(samples, statistic, vectorized=False, seed=seed)
+    return float(interval.low), float(interval.high)
 
 
 def mean_interval(values: np.ndarray) -> tuple[float, float]:
@@ -73,15 +134,33 @@ def mean_interval(values: np.ndarray) -> tuple[float, float]:
     return bootstrap_interval([np.asarray(values, float)], np.mean)
 
 
+def mean_intervals(values: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The 95% bootstrap interval of the mean over seeds at each point of a curve, all points in
+    one vectorised bootstrap: values [seeds, points] -> (low, high), each [points]; NaN where
+    there are too few seeds."""
+    values = np.asarray(values, float)
+    if _collapse_chance([len(values)]) >= TAIL or values.shape[1] == 0:
+        return np.full(values.shape[1], math.nan), np.full(values.shape[1], math.nan)
+    interval = _percentile_bootstrap([values], np.mean, vectorized=True, seed=seed)
+    return np.asarray(interval.low), np.asarray(interval.high)
+
+
 def iqm(*tasks: np.ndarray) -> float:
     """Interquartile mean of all runs of all tasks: the mean of the scores left after a quarter
-    of them (rounded down) is cut from each end, as rliable's `aggregate_iqm` computes it."""
+    of them (rounded down) is cut from each end, as rliable's `aggregate_iqm` computes it; NaN
+    below `IQM_MIN_RUNS` runs, where nothing would be cut."""
     from scipy import stats
 
+    if sum(np.size(task) for task in tasks) < IQM_MIN_RUNS:
+        return math.nan
     return float(stats.trim_mean(np.concatenate([np.ravel(task) for task in tasks]), 0.25))
 
 
 def iqm_interval(tasks: Sequence[np.ndarray]) -> tuple[float, float]:
+    """The stratified bootstrap interval of `iqm` (each task's runs resampled on their own);
+    (NaN, NaN) where the tasks have too few runs for one, or for an IQM."""
+    if sum(np.size(task) for task in tasks) < IQM_MIN_RUNS:
+        return math.nan, math.nan
     return bootstrap_interval(list(tasks), iqm)
 
 
@@ -97,7 +176,10 @@ def probability_of_improvement(xs: Sequence[np.ndarray], ys: Sequence[np.ndarray
 
 def improvement_interval(xs: Sequence[np.ndarray], ys: Sequence[np.ndarray]) -> tuple[float, float]:
     """The stratified bootstrap interval of `probability_of_improvement`: the runs of each
-    variant on each task are resampled independently."""
+    variant on each task are resampled independently; (NaN, NaN) where the runs are too few
+    (`improvement_seeds_needed`)."""
+    if _separation_chance(xs, ys) >= 1 - CONFIDENCE:
+        return math.nan, math.nan
     count = len(xs)
     return bootstrap_interval([*xs, *ys], lambda *samples: probability_of_improvement(samples[:count], samples[count:]))
 

@@ -1,14 +1,28 @@
-"""The report's figures (PNG, drawn with matplotlib without a display). Every chart shows its
-spread: bands of one standard deviation over seeds on curves, 95% bootstrap intervals on bars."""
+"""The report's figures, drawn with matplotlib without a display, each as PNG and as PDF beside
+it (for a paper). Every chart shows its spread: 95% bootstrap confidence intervals of the mean over
+seeds as bands on curves and as error bars on bars (`rpo_jax.aggregate`), the seeds themselves
+where they are too few for an interval, and the number of runs behind each curve or bar."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
+from rpo_jax import aggregate
+
 DPI = 110
+SUFFIXES = (".png", ".pdf")  # what `_save` writes of each figure
+# A logged update in which no episode finished repeats the last finished episodes' return and
+# length (`ppo.Metrics`): such points are not measurements and are left out of the curves.
+EPISODE_METRICS = ("episode_return", "episode_length")
+CURVES_CAPTION = (
+    "Lines: mean over seeds (n seeds per curve in the legend); bands: {confidence:.0%} bootstrap confidence "
+    "interval of the mean ({resamples} resamples); thin lines: the single seeds, where too few (< {needed}) for "
+    "an interval. Return and length only at updates in which an episode finished in every seed."
+)
 
 
 def pyplot() -> Any:
@@ -29,11 +43,49 @@ def slug(name: str) -> str:
     return name.replace("/", "_")
 
 
-def _save(fig: Any, path: Path) -> str:
-    fig.tight_layout()
+def plain_steps(value: float, _position: Any = None) -> str:
+    """A tick label without an offset: 500k, 1M, 1.5M, 2B."""
+    for size, suffix in ((1e9, "B"), (1e6, "M"), (1e3, "k")):
+        if abs(value) >= size:
+            return f"{value / size:g}{suffix}"
+    return f"{value:g}"
+
+
+def _save(fig: Any, path: Path, rect: tuple[float, float, float, float] = (0, 0, 1, 1)) -> str:
+    """Writes `path` (PNG) and the same figure as PDF beside it, with TrueType fonts (which
+    journals ask for) and no creation date (the same figure gives the same bytes)."""
+    import matplotlib
+
+    fig.tight_layout(rect=rect)
     fig.savefig(path, dpi=DPI)
+    with matplotlib.rc_context({"pdf.fonttype": 42}):
+        fig.savefig(path.with_suffix(SUFFIXES[1]), metadata={"CreationDate": None})
     pyplot().close(fig)
     return path.name
+
+
+def finished_points(runs: list[list[dict]], metric: str) -> tuple[np.ndarray, np.ndarray]:
+    """The steps [points] and values [runs, points] of `metric` over the updates all runs
+    logged; for an episode metric only the updates in which every run finished an episode."""
+    length = min(len(run) for run in runs)
+    steps = np.array([row["env_steps"] for row in runs[0][:length]])
+    values = np.array([[row[metric] for row in run[:length]] for run in runs], float)
+    if metric in EPISODE_METRICS:
+        finished = np.all([[row["episodes_finished"] > 0 for row in run[:length]] for run in runs], axis=0)
+        steps, values = steps[finished], values[:, finished]
+    return steps, values
+
+
+def _draw_series(axis: Any, runs: list[list[dict]], metric: str, colour: Any, label: str) -> None:
+    """The mean over runs with its bootstrap band, or with the single runs where too few."""
+    steps, values = finished_points(runs, metric)
+    axis.plot(steps, values.mean(axis=0), color=colour, label=f"{label} (n={len(runs)})", linewidth=1.5)
+    low, high = aggregate.mean_intervals(values)
+    if len(low) and not math.isnan(low[0]):
+        axis.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
+    elif len(values) > 1:  # one seed is its own mean
+        for seed in values:
+            axis.plot(steps, seed, color=colour, linewidth=0.6, alpha=0.45)
 
 
 def curves(
@@ -45,50 +97,62 @@ def curves(
     marks: dict[str, float] | None = None,
 ) -> str:
     """One panel per (metric, label); per series (label -> runs, each a list of rows in update
-    order) the mean over runs against environment steps, with a band of one std. `marks` (label
-    -> value) draws a dashed line across the first panel in the series' colour: a published final value."""
+    order) the mean over runs against environment steps with its 95% bootstrap band
+    (`_draw_series`), under a caption that says so. `marks` (label -> value) draws a dashed line
+    across the first panel in the series' colour: a published final value."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.8), squeeze=False)
     for label, runs in series.items():
-        length = min(len(run) for run in runs)
-        steps = np.array([row["env_steps"] for row in runs[0][:length]])
         for axis, (metric, _) in zip(axes[0], metrics):
-            values = np.array([[row[metric] for row in run[:length]] for run in runs])
-            mean, std = values.mean(axis=0), values.std(axis=0)
-            axis.plot(steps, mean, color=colours[label], label=label, linewidth=1.5)
-            axis.fill_between(steps, mean - std, mean + std, color=colours[label], alpha=0.2, linewidth=0)
+            _draw_series(axis, runs, metric, colours[label], label)
     for label, value in (marks or {}).items():
         axes[0][0].axhline(value, color=colours[label], linestyle="--", linewidth=1, label=f"{label}: reference")
     for axis, (_, label) in zip(axes[0], metrics):
         axis.set_xlabel("environment steps")
+        axis.xaxis.set_major_formatter(plain_steps)
         axis.set_ylabel(label)
         axis.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(title)
-    return _save(fig, path)
+    caption = CURVES_CAPTION.format(
+        confidence=aggregate.CONFIDENCE, resamples=aggregate.RESAMPLES, needed=aggregate.interval_seeds_needed()
+    )
+    fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=7, wrap=True)
+    return _save(fig, path, rect=(0, 0.06, 1, 1))
 
 
-def interval_bars(path: Path, title: str, ylabel: str, values: dict[str, tuple[float, float, float]], colours: dict) -> str:
-    """One bar per variant at its point estimate, with its interval (low, high) as an error bar."""
+def interval_bars(
+    path: Path, title: str, ylabel: str, values: dict[str, tuple[float, float, float, str]], colours: dict,
+    runs: dict[str, int],
+) -> str:
+    """One bar per variant at its point estimate, with its interval (low, high) as an error bar
+    and its number of runs under its name. Where the estimate or the interval is NaN (too few
+    runs) the variant's text (the 4th element, e.g. "n/a (needs >= 4 runs)") is written instead."""
     plt = pyplot()
     names = list(values)
-    points = np.array([values[name][0] for name in names])
-    errors = np.array([[values[n][0] - values[n][1] for n in names], [values[n][2] - values[n][0] for n in names]])
-    fig, axis = plt.subplots(figsize=(max(5, 0.9 * len(names) + 2), 4))
-    axis.bar(range(len(names)), points, yerr=errors, capsize=4, color=[colours[n] for n in names])
-    axis.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    fig, axis = plt.subplots(figsize=(max(5, 0.9 * len(names) + 2), 4.2))
+    for place, name in enumerate(names):
+        point, low, high, text = values[name]
+        if not math.isnan(point):
+            errors = None if math.isnan(low) else [[point - low], [high - point]]
+            axis.bar(place, point, yerr=errors, capsize=4, color=colours[name])
+        if math.isnan(point) or math.isnan(low):
+            axis.text(place, 0 if math.isnan(point) else point, text, rotation=90, ha="center", va="bottom", fontsize=7)
+    axis.set_xticks(range(len(names)), [f"{name} (n={runs[name]})" for name in names], rotation=30, ha="right")
+    axis.set_xlim(-0.6, len(names) - 0.4)  # room for the texts of variants without a bar
     axis.set_ylabel(ylabel)
     axis.set_title(title)
     axis.grid(axis="y", alpha=0.3)
     return _save(fig, path)
 
 
-def profiles(path: Path, thresholds: np.ndarray, fractions: dict[str, np.ndarray], colours: dict) -> str:
-    """Performance profiles: the fraction of runs above each normalised score."""
+def profiles(path: Path, thresholds: np.ndarray, fractions: dict[str, np.ndarray], colours: dict, runs: dict[str, int]) -> str:
+    """Performance profiles: the fraction of runs above each normalised score, with the number
+    of runs in the legend."""
     plt = pyplot()
     fig, axis = plt.subplots(figsize=(6, 4))
     for name, fraction in fractions.items():
-        axis.plot(thresholds, fraction, color=colours[name], label=name, linewidth=1.5)
+        axis.plot(thresholds, fraction, color=colours[name], label=f"{name} (n={runs[name]})", linewidth=1.5)
     axis.set_xlabel("normalised score τ")
     axis.set_ylabel("fraction of runs with score > τ")
     axis.set_title("Performance profile (runs pooled over environments)")

@@ -5,7 +5,7 @@
     python -m rpo_jax.report runs/cartpole-rpo-20261123-101500
 
 Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes report.md and
-figures/ (PNG): per environment and variant the final return with its sample std and a 95%
+figures/ (PNG, and PDF beside each): per environment and variant the final return with its sample std and a 95%
 bootstrap confidence interval over seeds; across environments the interquartile mean of
 normalised scores and the probability that RPO improves on each baseline, with stratified
 bootstrap intervals (`rpo_jax.aggregate`); learning curves, interval bars, a performance
@@ -105,7 +105,8 @@ def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
     if report.exists() and (not report.is_file() or not report.read_text(errors="replace").startswith(REPORT_TITLE)):
         foreign.append(REPORT_FILE)
     figures_dir = out / FIGURES_DIR
-    if figures_dir.exists() and (not figures_dir.is_dir() or any(entry.suffix != ".png" for entry in figures_dir.iterdir())):
+    drawn = figures_dir.is_dir() and all(entry.suffix in figures.SUFFIXES for entry in figures_dir.iterdir())
+    if figures_dir.exists() and not drawn:
         foreign.append(FIGURES_DIR)
     if foreign:
         raise UsageError(
@@ -177,35 +178,38 @@ def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, s
 
 def aggregates(scores: dict, variants: list[str]) -> dict[str, dict]:
     """Per variant over the environments it ran on: the IQM of normalised scores with its
-    stratified bootstrap interval, the mean, and the environments and runs counted."""
+    stratified bootstrap interval (NaN where too few runs) and the seeds per environment that
+    interval needs, the mean, and the environments and runs counted."""
     result = {}
     for variant in variants:
         tasks = [runs for (_, v), runs in scores.items() if v == variant]
         if tasks:
             low, high = aggregate.iqm_interval(tasks)
             result[variant] = {
-                "iqm": aggregate.iqm(*tasks), "low": low, "high": high,
+                "iqm": aggregate.iqm(*tasks), "low": low, "high": high, "needs": aggregate.interval_seeds_needed(len(tasks)),
                 "mean": float(np.mean([np.mean(task) for task in tasks])),
                 "envs": len(tasks), "runs": sum(len(task) for task in tasks),
             }  # fmt: skip
     return result
 
 
-def improvements(scores: dict, variants: list[str], algos: dict[str, str]) -> list[tuple[str, str, float, float, float]]:
-    """(rpo variant, baseline, P(rpo > baseline), low, high) over the environments both ran on."""
+def improvements(scores: dict, variants: list[str], algos: dict[str, str]) -> list[tuple[str, str, float, float, float, int]]:
+    """(rpo variant, baseline, P(rpo > baseline), low, high, seeds its interval needs) over the
+    environments both ran on; low and high NaN where the seeds are too few."""
     found = []
     for x in (v for v in variants if algos.get(v) == "rpo"):
         for y in (v for v in variants if algos.get(v) != "rpo"):
             envs = [env for (env, v) in scores if v == x and (env, y) in scores]
             if envs:
                 xs, ys = [scores[env, x] for env in envs], [scores[env, y] for env in envs]
-                found.append((x, y, aggregate.probability_of_improvement(xs, ys), *aggregate.improvement_interval(xs, ys)))
+                point, interval = aggregate.probability_of_improvement(xs, ys), aggregate.improvement_interval(xs, ys)
+                found.append((x, y, point, *interval, aggregate.improvement_seeds_needed(len(envs))))
     return found
 
 
-
 def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict | None = None) -> list[str]:
-    """The PNG files, as paths relative to the report; the curves mark `published`'s final values."""
+    """The PNG files (each with a PDF beside it), as paths relative to the report; the curves mark
+    `published`'s final values."""
     out.mkdir(parents=True, exist_ok=True)
     variants = unique(row["variant"] for row in rows)
     colours = figures.colours_for(variants)
@@ -217,15 +221,16 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
         panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy (sum over action dimensions)"))
         path = out / f"{figures.slug(env)}-curves.png"
         marks = reference.marks(published or {}, env, {v: algos[v] for v in series})
-        written.append(figures.curves(path, f"{env}: mean ± std over seeds", series, panels, colours, marks))
+        written.append(figures.curves(path, env, series, panels, colours, marks))
     table = aggregates(scores, variants)
     if table:
-        bars = {v: (t["iqm"], t["low"], t["high"]) for v, t in table.items()}
-        written.append(figures.interval_bars(out / "normalized-scores.png", "IQM of normalised final return (95% CI)",
-                                             "normalised score", bars, colours))  # fmt: skip
+        bars = {v: (t["iqm"], t["low"], t["high"], tables.iqm_text(t)) for v, t in table.items()}
+        runs_of = {v: t["runs"] for v, t in table.items()}
+        written.append(figures.interval_bars(out / "normalized-scores.png", "IQM of normalised final return (95% bootstrap CI)",
+                                             "normalised score", bars, colours, runs_of))  # fmt: skip
         thresholds = np.linspace(0.0, max(1.0, max(float(np.max(s)) for s in scores.values())), 101)
         fractions = {v: aggregate.performance_profile([s for (_, x), s in scores.items() if x == v], thresholds) for v in table}
-        written.append(figures.profiles(out / "performance-profile.png", thresholds, fractions, colours))
+        written.append(figures.profiles(out / "performance-profile.png", thresholds, fractions, colours, runs_of))
     written.append(figures.perturbed_gaussian(out / "perturbed-gaussian.png"))
     return written
 
@@ -292,7 +297,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         series[point_of[index]].append(run_rows)
     colours = figures.colours_for(list(series))
     (out / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
-    title = f"{record['env']} {record['algo']}: mean ± std over seeds"
+    title = f"{record['env']} {record['algo']}"
     panels = [
         (("episode_return", "episode return"), ("policy_entropy", "policy entropy")),
         (("policy_loss", "policy loss"), ("value_loss", "value loss"), ("learning_rate", "learning rate")),

@@ -14,8 +14,9 @@ from rpo_jax.scores import with_spread
 def cell(stats: dict, name: str, digits: int = 2) -> str:
     """`stats`' NAME_mean ± NAME_std [NAME_low, NAME_high]; the mean alone for one seed."""
     # One seed has no spread to show: a "± 0.00" would read as a measured one.
-    mean, std, low, high = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std", "low", "high"))
-    return with_spread(mean, f" ± {std} [{low}, {high}]", stats["seeds"])
+    mean, std = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std"))
+    interval = aggregate.interval_text(stats[f"{name}_low"], stats[f"{name}_high"], aggregate.interval_seeds_needed(), digits)
+    return with_spread(mean, f" ± {std} {interval}", stats["seeds"])
 
 
 def table(envs: Sequence[str], variants: Sequence[str], cells: dict, bold: dict) -> list[str]:
@@ -50,7 +51,8 @@ def result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[s
         "",
         "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
         f"and, in brackets, the {aggregate.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
-        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed); the best mean "
+        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed, n/a with fewer than "
+        f"{aggregate.interval_seeds_needed()}, where the interval could only restate the seeds' range); the best mean "
         "of each environment in bold.",
         "",
         *table(envs, variants, returns, {env: best(summary, summary, env, "return_mean") for env in envs}),
@@ -90,7 +92,17 @@ def eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]
         "",
     ]
 
-def aggregate_section(envs: list[str], iqms: dict[str, dict], found: list[tuple[str, str, float, float, float]]) -> list[str]:
+
+def iqm_text(entry: dict) -> str:
+    """A `report.aggregates` entry's "IQM [low, high]", with n/a for what its runs cannot estimate."""
+    if math.isnan(entry["iqm"]):
+        return aggregate.not_estimable(aggregate.IQM_MIN_RUNS, "runs")
+    return f"{entry['iqm']:.3f} {aggregate.interval_text(entry['low'], entry['high'], entry['needs'], 3)}"
+
+
+def aggregate_section(
+    envs: list[str], iqms: dict[str, dict], found: list[tuple[str, str, float, float, float, int]]
+) -> list[str]:
     """The comparison across environments: the score ranges, the IQM of each variant's normalised
     scores (`iqms`, from `report.aggregates`) and the probabilities of improvement (`found`, from
     `report.improvements`)."""
@@ -118,8 +130,7 @@ def aggregate_section(envs: list[str], iqms: dict[str, dict], found: list[tuple[
             "",
             "| variant | IQM [95% CI] | mean | environments | runs |",
             "|---|---|---|---|---|",
-            *(f"| {v} | {t['iqm']:.3f} [{t['low']:.3f}, {t['high']:.3f}] | {t['mean']:.3f} | {t['envs']} | {t['runs']} |"
-              for v, t in iqms.items()),
+            *(f"| {v} | {iqm_text(t)} | {t['mean']:.3f} | {t['envs']} | {t['runs']} |" for v, t in iqms.items()),
             "",
         ]  # fmt: skip
     if found:
@@ -130,7 +141,7 @@ def aggregate_section(envs: list[str], iqms: dict[str, dict], found: list[tuple[
             "",
             "| RPO variant | baseline | P(RPO > baseline) [95% CI] |",
             "|---|---|---|",
-            *(f"| {x} | {y} | {p:.3f} [{low:.3f}, {high:.3f}] |" for x, y, p, low, high in found),
+            *(f"| {x} | {y} | {p:.3f} {aggregate.interval_text(low, high, k, 3)} |" for x, y, p, low, high, k in found),
             "",
         ]
     return lines

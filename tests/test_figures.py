@@ -1,0 +1,136 @@
+"""The report's figures: written as PNG and PDF, bands that are bootstrap intervals of the mean,
+no carried-forward returns, plain tick labels, and statistics too few seeds cannot estimate."""
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from matplotlib.collections import PolyCollection
+from scipy import stats
+
+from rpo_jax import aggregate, figures, report
+
+UPDATES = 8
+STEPS = 250_000  # per update: ticks fall on 500k, 1M, 1.5M, 2M
+
+
+def rows_of(variant: str, algo: str, finals: list[float], unfinished: frozenset = frozenset()) -> list[dict]:
+    """results.csv rows of one environment: seed s of `finals` returns finals[s] * update / UPDATES,
+    its entropy 1 + s; in the (seed index, update) pairs of `unfinished` no episode finished."""
+    rows = []
+    for index, final in enumerate(finals):
+        for update in range(1, UPDATES + 1):
+            row = dict.fromkeys(report.COLUMNS, 0.0)
+            row.update(experiment="x", env="cartpole", variant=variant, algo=algo, dist="gaussian", seed=float(index + 1))
+            finished = 0.0 if (index, update) in unfinished else 4.0
+            row.update(update=float(update), env_steps=float(update * STEPS), episodes_finished=finished)
+            row.update(episode_return=final * update / UPDATES, policy_entropy=1.0 + index)
+            rows.append(row)
+    return rows
+
+
+@pytest.fixture
+def drawn(monkeypatch):
+    """The figures drawn during the test, kept open instead of closed after saving."""
+    kept = []
+    monkeypatch.setattr(plt, "close", kept.append)
+    return kept
+
+
+def draw_curves(tmp_path, series_rows: dict[str, list[dict]], drawn: list) -> plt.Figure:
+    series = {label: list(report.group_runs(rows)["cartpole", label].values()) for label, rows in series_rows.items()}
+    colours = figures.colours_for(list(series))
+    panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy"))
+    figures.curves(tmp_path / "curves.png", "cartpole", series, panels, colours)
+    return drawn[-1]
+
+
+def test_every_figure_is_written_as_png_and_pdf_the_same_bytes_each_time(tmp_path):
+    rows = rows_of("rpo", "rpo", [400.0, 450.0, 500.0, 480.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 200.0, 250.0])
+    report.write_results(tmp_path, rows)
+    text = report.build(tmp_path, [tmp_path]).read_text()
+    names = ("cartpole-curves", "normalized-scores", "performance-profile", "perturbed-gaussian")
+    first = {}
+    for name in names:
+        png, pdf = (tmp_path / report.FIGURES_DIR / f"{name}{suffix}" for suffix in (".png", ".pdf"))
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and pdf.read_bytes()[:5] == b"%PDF-", name
+        assert f"({report.FIGURES_DIR}/{name}.png)" in text
+        first[name] = pdf.read_bytes()
+    # The PDFs beside the PNGs are the report's own: building again over them is allowed.
+    report.build(tmp_path, [tmp_path])
+    assert {name: (tmp_path / report.FIGURES_DIR / f"{name}.pdf").read_bytes() for name in names} == first
+    # A file of the user's among them is not: nothing is overwritten that the report did not write.
+    (tmp_path / report.FIGURES_DIR / "notes.txt").write_text("mine")
+    with pytest.raises(report.UsageError, match="holds files the report did not write"):
+        report.build(tmp_path, [tmp_path])
+
+
+def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(tmp_path, drawn):
+    finals = [100.0, 300.0, 350.0, 500.0, 420.0]
+    fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", finals)}, drawn)
+    band = next(child for child in fig.axes[0].get_children() if isinstance(child, PolyCollection))
+    vertices = band.get_paths()[0].vertices
+    values = np.array([[final * update / UPDATES for update in range(1, UPDATES + 1)] for final in finals])
+    low, high = aggregate.mean_intervals(values)
+    for update, (lo, hi) in enumerate(zip(low, high), start=1):
+        at_step = vertices[vertices[:, 0] == update * STEPS, 1]
+        assert at_step.min() == pytest.approx(lo) and at_step.max() == pytest.approx(hi)
+    # Not the old band of one std: at the last update the interval is narrower than mean ± std.
+    mean, std = values[:, -1].mean(), values[:, -1].std()
+    assert mean - std < low[-1] < mean < high[-1] < mean + std
+    assert [text.get_text() for text in fig.axes[0].get_legend().get_texts()] == ["rpo (n=5)"]
+    assert any("95% bootstrap confidence interval of the mean" in text.get_text() for text in fig.texts)
+
+
+def test_too_few_seeds_for_an_interval_draw_the_seeds_instead_of_a_band(tmp_path, drawn):
+    fig = draw_curves(tmp_path, {"ppo": rows_of("ppo", "ppo", [100.0, 300.0, 500.0])}, drawn)
+    assert not any(isinstance(child, PolyCollection) for child in fig.axes[0].get_children())
+    assert len(fig.axes[0].get_lines()) == 1 + 3  # the mean and each seed
+
+
+def test_curves_leave_out_updates_in_which_no_episode_finished(tmp_path, drawn):
+    # Seed 0 finishes nothing in updates 3 and 4, seed 2 nothing in update 7: their returns there
+    # are the previous ones carried forward.
+    unfinished = frozenset({(0, 3), (0, 4), (2, 7)})
+    fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", [100.0, 200.0, 300.0, 400.0], unfinished)}, drawn)
+    returns, entropy = (axis.get_lines()[0] for axis in fig.axes[:2])
+    assert list(returns.get_xdata()) == [update * STEPS for update in (1, 2, 5, 6, 8)]
+    assert list(entropy.get_xdata()) == [update * STEPS for update in range(1, UPDATES + 1)]  # never carried
+
+
+def test_step_ticks_are_plain_numbers_without_an_offset(tmp_path, drawn):
+    assert [figures.plain_steps(v) for v in (0, 500_000, 1e6, 1.5e6, 2e6, 1.2e9)] == ["0", "500k", "1M", "1.5M", "2M", "1.2B"]
+    fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", [100.0, 200.0, 300.0, 400.0])}, drawn)
+    fig.canvas.draw()
+    labels = {label.get_text() for label in fig.axes[0].get_xticklabels()}
+    assert {"500k", "1M", "1.5M", "2M"} <= labels and fig.axes[0].xaxis.get_offset_text().get_text() == ""
+
+
+def test_the_seeds_needed_follow_from_the_bootstrap():
+    # At 3 seeds the 95% percentile interval of the mean is the seeds' range (3 ** -3 = 3.7% of
+    # resamples repeat the smallest seed, more than the 2.5% tail); at 4 it lies inside it.
+    assert aggregate.interval_seeds_needed() == 4 and aggregate.interval_seeds_needed(2) == 3
+    rng = np.random.default_rng(0)
+    for seeds, restated in ((3, True), (4, False)):
+        values = np.array([1.0, 2.0, 4.0, 8.0][:seeds])
+        interval = stats.bootstrap((values,), np.mean, method="percentile", rng=rng).confidence_interval
+        if restated:
+            assert (interval.low, interval.high) == (values.min(), values.max())
+        else:
+            assert values.min() < interval.low < interval.high < values.max()
+    # Equal variants separate entirely on one task with chance 2 / C(6, 3) = 10% at 3 seeds each, 2.9% at 4.
+    assert aggregate.improvement_seeds_needed(1) == 4 and aggregate.improvement_seeds_needed(3) == 2
+
+
+def test_statistics_too_few_seeds_cannot_estimate_are_shown_as_not_estimable(tmp_path):
+    rows = rows_of("rpo", "rpo", [100.0, 150.0, 200.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 400.0])
+    assert np.isnan(aggregate.improvement_interval([np.array([0.1, 0.2, 0.3])], [np.array([0.6, 0.7, 0.8])])).all()
+    assert np.isnan(aggregate.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(aggregate.mean_interval(np.ones(3))).all()
+    report.write_results(tmp_path, rows)
+    text = report.build(tmp_path, [tmp_path]).read_text()
+    assert "| rpo | ppo | 0.000 n/a (needs >= 4 seeds) |" in text and "0.000 [0.000, 0.000]" not in text
+    assert "| rpo | n/a (needs >= 4 runs) |" in text  # the IQM of 3 runs would trim nothing
+    assert "| cartpole | 150.00 ± 50.00 n/a (needs >= 4 seeds) |" in text
+    # With a fourth seed each, every statistic has its interval.
+    more = rows + rows_of("rpo", "rpo", [0, 0, 0, 180.0])[3 * UPDATES :] + rows_of("ppo", "ppo", [0, 0, 0, 330.0])[3 * UPDATES :]
+    report.write_results(tmp_path, more)
+    assert "n/a (needs" not in report.build(tmp_path, [tmp_path]).read_text()
