@@ -1,5 +1,5 @@
 """The report's figures (PNG, drawn with matplotlib without a display). Every chart shows its
-spread: bands of one standard deviation over seeds on curves, 95% bootstrap intervals on bars."""
+spread: bands of one sample standard deviation over seeds on curves, 95% bootstrap intervals on bars."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+
+from rpo_jax.scores import sample_std
 
 DPI = 110
 
@@ -45,7 +47,7 @@ def curves(
     marks: dict[str, float] | None = None,
 ) -> str:
     """One panel per (metric, label); per series (label -> runs, each a list of rows in update
-    order) the mean over runs against environment steps, with a band of one std. `marks` (label
+    order) the mean over runs against environment steps, with a band of one sample std (none for one run). `marks` (label
     -> value) draws a dashed line across the first panel in the series' colour: a published final value."""
     plt = pyplot()
     fig, axes = plt.subplots(1, len(metrics), figsize=(6 * len(metrics), 4.5), squeeze=False)
@@ -54,7 +56,7 @@ def curves(
         steps = np.array([row["env_steps"] for row in runs[0][:length]])
         for axis, (metric, _) in zip(axes[0], metrics):
             values = np.array([[row[metric] for row in run[:length]] for run in runs])
-            mean, std = values.mean(axis=0), values.std(axis=0)
+            mean, std = values.mean(axis=0), sample_std(values, axis=0)
             axis.plot(steps, mean, color=colours[label], label=label, linewidth=1.5)
             axis.fill_between(steps, mean - std, mean + std, color=colours[label], alpha=0.2, linewidth=0)
     for label, value in (marks or {}).items():

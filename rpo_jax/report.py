@@ -34,7 +34,7 @@ from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
 )  # fmt: skip
-from rpo_jax.scores import kept_fraction, tail_mean, with_spread
+from rpo_jax.scores import kept_fraction, sample_std, tail_mean, with_spread
 
 RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
@@ -129,8 +129,7 @@ def group_runs(rows: Sequence[dict]) -> dict[tuple[str, str], dict[float, list[d
 def _spread(values: np.ndarray) -> dict[str, float]:
     """Mean, sample std (NaN for one seed) and the 95% bootstrap interval of the mean."""
     low, high = aggregate.mean_interval(values)
-    std = float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
-    return {"mean": float(np.mean(values)), "std": std, "low": low, "high": high}
+    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high}
 
 
 def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
