@@ -168,3 +168,28 @@ def test_dir_and_type_checkers_see_the_public_names_without_importing_jax():
     typing_block = next(node for node in tree.body if isinstance(node, ast.If) and ast.unparse(node.test) == "TYPE_CHECKING")
     imported = {alias.name: node.module for node in typing_block.body for alias in node.names}
     assert imported == rpo_jax._EXPORTS
+
+
+WRONG_USE = """\
+import rpo_jax
+
+trainer = rpo_jax.make_trainer(rpo_jax.Config(), rpo_jax.make_env("cartpole"))
+trainer.tarin
+rpo_jax.save_run("out", trainer, None, None, env=3)
+"""
+
+
+def test_a_type_checker_accepts_the_usage_file_and_catches_a_wrong_use(tmp_path):
+    pytest.importorskip("mypy")
+    wrong = tmp_path / "wrong_use.py"
+    wrong.write_text(WRONG_USE)
+    usage = Path(__file__).parent / "typed_usage.py"
+    # Errors inside rpo_jax and its dependencies are not this test's subject: only the two files'.
+    # About 19 s on two cores, mostly reading JAX's and flax's types.
+    command = [sys.executable, "-m", "mypy", "--follow-imports=silent", "--cache-dir", str(tmp_path / "cache")]
+    result = subprocess.run([*command, str(usage), str(wrong)], capture_output=True, text=True)
+    errors = [line for line in result.stdout.splitlines() if ": error:" in line]
+    assert not [line for line in errors if "typed_usage.py" in line], result.stdout
+    assert any('"Trainer" has no attribute "tarin"' in line for line in errors), result.stdout
+    assert any('"env" to "save_run" has incompatible type "int"; expected "str"' in line for line in errors), result.stdout
+    assert any('expected "TrainState"' in line for line in errors), result.stdout
