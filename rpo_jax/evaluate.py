@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Sequence
 from rpo_jax.cli import ArgumentParser
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import PARAMS_FILE, RunDir, check_new_file
+from rpo_jax.scores import sample_std, with_spread
 
 # JAX, MuJoCo and the policy are imported by the functions that use them, so that --help is quick.
 if TYPE_CHECKING:
@@ -179,9 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         key = jax.random.PRNGKey(args.seed)
         returns = episode_returns(env, policy, args.episodes, key, args.deterministic)
         mode = "deterministic" if args.deterministic else "stochastic"
+        spread = with_spread(f"{returns.mean():.2f}", f" ± {sample_std(returns):.2f}", args.episodes)  # mean ± sample std
         print(
             f"{saved['env']} run {args.run} (seed {saved['runs'][args.run]['seed']}), {mode} policy: "
-            f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.episodes} episodes"
+            f"return {spread} over {args.episodes} episodes"
         )
         if args.video:
             total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)

@@ -157,6 +157,12 @@ def test_one_spread_sample_std_with_n_in_the_summary_the_final_line_and_the_repo
     assert f"final return {np.mean(finals):.2f} ± {std:.2f}" in line and "(mean ± sample std) over 2 seed(s)" in line
     assert report.main([str(out)]) == 0
     assert f"{np.mean(finals):.2f} ± {std:.2f}" in (out / "report.md").read_text()
+    # evaluate's spread over episodes: the same sample std, of the episodes it ran.
+    assert evaluate.main([str(out), "--episodes", "3"]) == 0
+    line = capsys.readouterr().out.strip()
+    deterministic = "deterministic policy" in line
+    returns = evaluate.episode_returns(envs.make_env(ENV), rpo_jax.load_policy(out), 3, jax.random.PRNGKey(0), deterministic)
+    assert f"return {returns.mean():.2f} ± {np.std(returns, ddof=1):.2f} over 3 episodes" in line, line
 
 
 def test_dir_and_type_checkers_see_the_public_names_without_importing_jax():
