@@ -32,7 +32,7 @@ from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
-    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
+    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, WANDB_DIR, RunDir,
 )  # fmt: skip
 from rpo_jax.scores import kept_fraction, sample_std, tail_mean, with_spread
 
@@ -88,7 +88,7 @@ def read_results(directory: Path) -> list[dict]:
 # next to the results it was made from), a training run's (a run's report goes into its
 # directory), and the lock of a run writing there.
 EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
-RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE)
+RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR)
 
 
 def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
