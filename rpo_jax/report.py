@@ -333,7 +333,7 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
         panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy (sum over action dimensions)"))
         path = out / f"{figures.slug(env)}-curves.png"
         marks = reference.marks(published or {}, env, {v: algos[v] for v in series})
-        written.append(figures.curves(path, f"{env}: mean ± std over seeds", series, panels, colours, marks))
+        written.append(figures.curves(path, f"{env}: mean ± sample std over seeds", series, panels, colours, marks))
     table = aggregates(scores, variants)
     if table:
         bars = {v: (t["iqm"], t["low"], t["high"]) for v, t in table.items()}
@@ -408,7 +408,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         series[point_of[index]].append(run_rows)
     colours = figures.colours_for(list(series))
     (out / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
-    title = f"{record['env']} {record['algo']}: mean ± std over seeds"
+    title = f"{record['env']} {record['algo']}: mean ± sample std over seeds"
     panels = [
         (("episode_return", "episode return"), ("policy_entropy", "policy entropy")),
         (("policy_loss", "policy loss"), ("value_loss", "value loss"), ("learning_rate", "learning rate")),
@@ -423,7 +423,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         "",
         f"Made by `python -m rpo_jax.report {run_dir.path}` from metrics.jsonl ({len(by_run)} run(s)).",
         "",
-        "| runs | seeds | final return (mean ± std [95% CI]) |",
+        "| runs | seeds | final return (mean ± sample std [95% CI]) |",
         "|---|---|---|",
         *(f"| {label} | {stats['seeds']} | {_cell(stats, 'return')} |" for label, stats in finals.items()),
         "",
