@@ -1,7 +1,9 @@
 """rpo_jax: PPO and Robust Policy Optimization on JAX, with thousands of environments in one XLA program."""
 
+from __future__ import annotations
+
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.2.0"  # the one declaration: pyproject.toml reads it
 
@@ -9,8 +11,19 @@ __version__ = "0.2.0"  # the one declaration: pyproject.toml reads it
 _EXPORTS = {
     "Config": "rpo_jax.config", "PRESETS": "rpo_jax.config", "ALGORITHMS": "rpo_jax.config",
     "make_train": "rpo_jax.ppo", "make_trainer": "rpo_jax.ppo", "load_policy": "rpo_jax.policy",
-    "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs", "check_env": "rpo_jax.envs",
+    "make_policy": "rpo_jax.policy", "save_run": "rpo_jax.library", "train_runs": "rpo_jax.library",
+    "RunSpec": "rpo_jax.spec", "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs", "check_env": "rpo_jax.envs",
 }  # fmt: skip
+
+# What type checkers and IDEs read instead of `__getattr__`: the same names, from the same modules
+# (tests/test_library.py checks that the two lists agree).
+if TYPE_CHECKING:  # `X as X`: re-exported, for type checkers
+    from rpo_jax.config import ALGORITHMS as ALGORITHMS, PRESETS as PRESETS, Config as Config
+    from rpo_jax.envs import check_env as check_env, make_env as make_env, register_env as register_env
+    from rpo_jax.library import save_run as save_run, train_runs as train_runs
+    from rpo_jax.policy import load_policy as load_policy, make_policy as make_policy
+    from rpo_jax.ppo import make_train as make_train, make_trainer as make_trainer
+    from rpo_jax.spec import RunSpec as RunSpec
 
 __all__ = sorted(_EXPORTS)
 
@@ -19,3 +32,8 @@ def __getattr__(name: str) -> Any:
     if name not in _EXPORTS:
         raise AttributeError(f"module 'rpo_jax' has no attribute {name!r}")
     return getattr(importlib.import_module(_EXPORTS[name]), name)
+
+
+def __dir__() -> list[str]:
+    """The public names and the module's dunders, without importing anything: what `dir(rpo_jax)` and completion show."""
+    return sorted({*_EXPORTS, *(name for name in globals() if name.startswith("__"))})

@@ -18,7 +18,7 @@ from rpo_jax import envs
 from rpo_jax.config import Config
 from rpo_jax.networks import Actor, policy_distribution
 
-# act(obs, key, deterministic) -> action: a `Policy`, or one jitted (`rpo_jax.load_policy`).
+# act(obs, key=None, deterministic=True) -> action: a `Policy`, or one jitted (`load_policy`, `make_policy`).
 ActFn = Callable[..., jax.Array]
 
 
@@ -35,11 +35,14 @@ class Policy:
     low: jax.Array
     high: jax.Array
 
-    def __call__(self, obs: jax.Array, key: jax.Array, deterministic: bool = False) -> jax.Array:
+    def __call__(self, obs: jax.Array, key: jax.Array | None = None, deterministic: bool = True) -> jax.Array:
         """The action for a raw observation [obs_size] or batch [B, obs_size]: normalised by the
-        training statistics as in training, sampled from the policy (its location when
-        `deterministic`: the Gaussian's mean, the Laplace's and Gumbel's location) and clipped to
-        the environment's bounds, as the environment would."""
+        training statistics as in training, the policy's location (the Gaussian's mean, the
+        Laplace's and Gumbel's location; the default, which every evaluation and export uses) or,
+        with `deterministic=False`, a sample drawn with `key`, clipped to the environment's bounds
+        as the environment would."""
+        if not deterministic and key is None:
+            raise ValueError("a sampled action (deterministic=False) needs a key: policy(obs, key, deterministic=False)")
         if self.config.normalize_obs:
             obs = envs.normalize_observation(obs, self.obs_stats, self.config.obs_clip)
         loc, log_scale = self.actor.apply(self.params, obs)

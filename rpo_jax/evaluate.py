@@ -27,6 +27,7 @@ import tyro
 
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import check_new_file
+from rpo_jax.scores import sample_std, with_spread
 from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
 
 PROG = "python -m rpo_jax.evaluate"
@@ -195,9 +196,10 @@ def run_command(args: EvaluateArgs) -> None:
     deterministic = not args.stochastic
     returns = episode_returns(env, policy, args.eval_episodes, key, deterministic)
     run = args.trained.run
+    spread = with_spread(f"{returns.mean():.2f}", f" ± {sample_std(returns):.2f}", args.eval_episodes)
     print(
         f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "
-        f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.eval_episodes} episodes"
+        f"return {spread} over {args.eval_episodes} episodes"
     )
     if args.video:
         total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), deterministic)

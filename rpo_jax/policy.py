@@ -1,11 +1,13 @@
-"""A trained policy: loading it from a run directory written by `python -m rpo_jax.train`
-(`load_policy`, and the run's parts: `load_run`). How it acts is `rpo_jax.acting`'s.
+"""A trained policy: from a run directory written by `python -m rpo_jax.train` or
+`rpo_jax.save_run` (`load_policy`, and the run's parts: `load_run`), or from a training state in
+memory (`make_policy`). How it acts is `rpo_jax.acting`'s; params.msgpack's format is this
+module's (`params_bytes` writes what `load_run` reads).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -19,12 +21,45 @@ from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 
 def load_policy(run_dir: str | Path, run: int = 0) -> ActFn:
-    """Returns a jitted `policy(obs, key, deterministic=False) -> action` (see `acting.Policy`). `run`
+    """Returns a jitted `policy(obs, key=None, deterministic=True) -> action` (see `acting.Policy`):
+    the policy's location by default, a sample with a key and `deterministic=False`. `run`
     indexes the runs (seeds x sweep points) trained together, as listed in config.json."""
     config, spec, actor_params, stats = load_run(run_dir, run)
-    actor, _ = ppo.make_networks(config, spec["action_size"])
-    policy = Policy(config, actor, actor_params, stats, jnp.asarray(spec["action_low"]), jnp.asarray(spec["action_high"]))
+    return jitted_policy(config, spec["action_size"], spec["action_low"], spec["action_high"], actor_params, stats)
+
+
+def make_policy(trainer: ppo.Trainer, state: ppo.TrainState, run: int | None = None) -> ActFn:
+    """The policy `load_policy` would give of `state` saved, without files: a jitted
+    `policy(obs, key=None, deterministic=True) -> action`. `state` is one run's (`make_train`'s
+    `train(key)`, `trainer.init`) or, with `run` its index, one of several trained together
+    (`jax.vmap(train)`)."""
+    actor_params, stats = state.params["actor"], trainer.observation_statistics(state)
+    batched = jnp.ndim(state.update) > 0
+    if batched != (run is not None):
+        raise ValueError(
+            f"make_policy: give run (the index) with a state of several runs, and only then; got run={run} with "
+            f"{'a state of ' + str(state.update.shape[0]) + ' runs' if batched else 'the state of one run'}"
+        )
+    if batched:
+        actor_params, stats = jax.tree.map(lambda leaf: leaf[run], (actor_params, stats))
+    spec = trainer.env.spec
+    return jitted_policy(trainer.config, spec.action_size, spec.action_low, spec.action_high, actor_params, stats)
+
+
+def jitted_policy(
+    config: Config, action_size: int, low: Sequence[float], high: Sequence[float], actor_params: Any,
+    stats: envs.RunningMeanStd,
+) -> ActFn:  # fmt: skip
+    """One run's `acting.Policy`, jitted (`deterministic` static)."""
+    actor, _ = ppo.make_networks(config, action_size)
+    policy = Policy(config, actor, actor_params, stats, jnp.asarray(low), jnp.asarray(high))
     return jax.jit(policy.__call__, static_argnames="deterministic")
+
+
+def params_bytes(params: Any, obs_stats: envs.RunningMeanStd) -> bytes:
+    """params.msgpack's content: the parameters of every run (actor and critic) and their
+    observation statistics, each leaf [runs, ...]."""
+    return serialization.msgpack_serialize(serialization.to_state_dict({"params": params, "obs_stats": obs_stats}))
 
 
 def load_run(run_dir: str | Path, run: int = 0) -> tuple[Config, dict[str, Any], Any, envs.RunningMeanStd]:

@@ -157,8 +157,9 @@ def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
 class Trainer:
     """The static parts of one training run, and its pure, jittable entry points.
 
-    `init(key, hparams=None)` builds the state; `update(state)` is one update;
-    `scan_updates(state, n)` does n updates in one `lax.scan`. A long run calls one compiled
+    `init(key, hparams=None)` builds the state; `update(state)` is one update; `train(key,
+    hparams=None)` the whole run (what `make_train` returns); `scan_updates(state, n)` does n
+    updates in one `lax.scan`. A long run calls one compiled
     chunk of updates repeatedly (all chunks the same length, so it compiles once) to report
     progress between chunks.
     `restart_episodes(state)` replaces the episodes in flight by fresh ones and keeps the rest."""
@@ -175,6 +176,11 @@ class Trainer:
 
     def update(self, state: TrainState) -> tuple[TrainState, Metrics]:
         return update(self, state)
+
+    def train(self, key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
+        """The whole run, `config.num_updates` updates from `init(key, hparams)`: the final state
+        and each update's metrics. Jittable and vmappable, as `make_train`'s function."""
+        return self.scan_updates(self.init(key, hparams), self.config.num_updates)
 
     def scan_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
         return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
@@ -399,10 +405,6 @@ def finished_episodes(
 def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
     """`train(key, hparams=None) -> (final state, per-update metrics)`: the whole run,
     jittable and vmappable. `jax.vmap(train)(keys, hparams)` with [R]-leaved `Hyperparams`
-    trains a sweep of R runs (grid points x seeds) in one program."""
-    trainer = make_trainer(config, env)
-
-    def train(key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
-        return trainer.scan_updates(trainer.init(key, hparams), config.num_updates)
-
-    return train
+    trains a sweep of R runs (grid points x seeds) in one program. `make_trainer(config, env).train`
+    is the same function, with the trainer that `make_policy` and `save_run` take."""
+    return make_trainer(config, env).train

@@ -10,11 +10,11 @@ import numpy as np
 
 from rpo_jax import ppo
 from rpo_jax.plan import RunPlan
-from rpo_jax.scores import tail_mean
+from rpo_jax.scores import sample_std, tail_mean
 
 
 def logged_rows(
-    plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float,
+    plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float | None,
     eval_returns: np.ndarray | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
@@ -36,6 +36,16 @@ def logged_rows(
             if evaluated:
                 rows[-1]["eval_return"] = float(eval_returns[index])
     return rows
+
+
+def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) -> dict[str, float]:
+    """What a progress function gets after a chunk: each of the trainer's metrics at the chunk's
+    last update (`episode_return`, `policy_entropy`, ...) and `eval_return` where the chunk ended
+    with an evaluation, as means over the runs, and `sps`, steps/s over all runs."""
+    values = {name: float(np.mean(value[:, -1])) for name, value in vars(metrics).items() if name != "env_steps"}
+    if eval_returns is not None:
+        values["eval_return"] = float(np.mean(eval_returns))
+    return {**values, "sps": sps}
 
 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
@@ -78,7 +88,7 @@ def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[li
 
 def summarise(
     plan: RunPlan, grid: list[dict[str, float]], runs: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]],
-    compile_seconds: float, seconds: dict[str, float],
+    compile_seconds: float | None, seconds: dict[str, float | None],
 ) -> dict[str, Any]:  # fmt: skip
     """summary.json's content; adds each run's final return (and, with evaluation, its last
     evaluation return) to `runs`. `seconds` are the `Clock`'s: steps/s counts training only."""
@@ -104,12 +114,19 @@ def summarise(
         "runs": runs,
         "compile_seconds": compile_seconds,
         **seconds,
-        "sps": env_steps * len(runs) / seconds["train_seconds"],
+        # None (JSON's null) where the training was not timed (`rpo_jax.save_run` without its seconds).
+        "sps": env_steps * len(runs) / seconds["train_seconds"] if seconds["train_seconds"] else None,
         "device": str(jax.devices()[0].device_kind),
     }
 
 
-def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float]:
-    """`NAME_mean` and `NAME_std` over `runs` of each run's NAME."""
-    values = {name: [run[name] for run in runs] for name in names}
-    return {f"{name}_{kind}": float(fn(v)) for name, v in values.items() for kind, fn in (("mean", np.mean), ("std", np.std))}
+def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float | int | None]:
+    """`NAME_mean`, `NAME_std` (`scores.sample_std`; None, JSON's null, for one run) and
+    `NAME_n`, the runs they are over, of each run's NAME."""
+    found: dict[str, float | int | None] = {}
+    for name in names:
+        values = [run[name] for run in runs]
+        std = float(sample_std(values))
+        found[f"{name}_mean"], found[f"{name}_n"] = float(np.mean(values)), len(values)
+        found[f"{name}_std"] = None if np.isnan(std) else std
+    return found

@@ -33,9 +33,9 @@ from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
-    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, RunDir,
+    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, WANDB_DIR, RunDir,
 )  # fmt: skip
-from rpo_jax.scores import kept_fraction, tail_mean
+from rpo_jax.scores import kept_fraction, sample_std, tail_mean
 from rpo_jax.spec import parse
 
 RESULTS_FILE = "results.csv"
@@ -90,7 +90,7 @@ def read_results(directory: Path) -> list[dict]:
 # next to the results it was made from), a training run's (a run's report goes into its
 # directory), and the lock of a run writing there.
 EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
-RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE)
+RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR)
 
 
 def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
@@ -132,8 +132,7 @@ def group_runs(rows: Sequence[dict]) -> dict[tuple[str, str], dict[float, list[d
 def _spread(values: np.ndarray) -> dict[str, float]:
     """Mean, sample std (NaN for one seed) and the 95% bootstrap interval of the mean."""
     low, high = aggregate.mean_interval(values)
-    std = float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
-    return {"mean": float(np.mean(values)), "std": std, "low": low, "high": high}
+    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high}
 
 
 def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
@@ -312,7 +311,7 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         "",
         f"Made by `python -m rpo_jax.report {run_dir.path}` from metrics.jsonl ({len(by_run)} run(s)).",
         "",
-        "| runs | seeds | final return (mean ± std [95% CI]) |",
+        "| runs | seeds | final return (mean ± sample std [95% CI]) |",
         "|---|---|---|",
         *(f"| {label} | {stats['seeds']} | {tables.cell(stats, 'return')} |" for label, stats in finals.items()),
         "",

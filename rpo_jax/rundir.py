@@ -33,6 +33,7 @@ PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
 LOCK_FILE = ".lock"
+WANDB_DIR = "wandb"  # W&B makes it in the run directory (`tracking.WandbSink`) unless WANDB_DIR is set
 
 
 @dataclasses.dataclass(frozen=True)

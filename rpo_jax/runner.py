@@ -27,7 +27,6 @@ from typing import Any, Callable, Iterator, Protocol, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import serialization
 
 from rpo_jax import devices, envs, ppo
 from rpo_jax.acting import Policy, first_episode_returns
@@ -36,7 +35,8 @@ from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
 from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, training_record
-from rpo_jax.records import first_nonfinite, logged_rows, record_returns, summarise
+from rpo_jax.policy import params_bytes
+from rpo_jax.records import first_nonfinite, logged_rows, progress_metrics, record_returns, summarise
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 
 
@@ -52,8 +52,8 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
-# progress(steps done per run, steps/s over all runs, mean return, mean entropy) after each chunk.
-ProgressFn = Callable[[int, float, float, float], None]
+# progress(steps done per run, metrics) after each chunk, as Brax's progress_fn: `records.progress_metrics`.
+ProgressFn = Callable[[int, dict[str, float]], None]
 
 
 def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
@@ -186,10 +186,10 @@ def train_locked(
         for sink in sinks:
             sink.close()
         compiled.trainer.close()
-    params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
+    params, obs_stats = placement.real_runs((state.params, compiled.trainer.observation_statistics(state)))
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
     if primary:
-        run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
+        run_dir.write_params(params_bytes(params, obs_stats))
         run_dir.write_summary(summary)
     return {"out": str(plan.out), **summary}
 
@@ -389,8 +389,7 @@ def train_chunks(
                 clock.lap("checkpoint_seconds")
                 last_checkpoint = updates_done
             if progress:
-                last_return, last_entropy = metrics.episode_return[:, -1].mean(), metrics.policy_entropy[:, -1].mean()
-                progress(steps_done, sps, float(last_return), float(last_entropy))
+                progress(steps_done, progress_metrics(metrics, sps, eval_returns))
     if checkpointer:
         checkpointer.close()
     clock.lap("train_seconds")

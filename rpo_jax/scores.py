@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -21,6 +21,15 @@ def kept_fraction(values: Sequence[float]) -> float:
     windows = np.convolve(values, np.ones(window) / window, mode="valid")
     best = windows.max()
     return float(windows[-1] / best) if best > 0 else math.nan
+
+
+def sample_std(values: Any, axis: int | None = None) -> Any:
+    """The spread of every mean ± std that rpo_jax reports (CLI, summary.json, reports, figures):
+    the sample standard deviation, n - 1 in the denominator, over all of `values` or along
+    `axis`. NaN where there are fewer than two values: one seed has no spread to measure."""
+    values = np.asarray(values, dtype=float)
+    count = values.size if axis is None else values.shape[axis]
+    return np.std(values, axis=axis, ddof=1) if count > 1 else np.mean(values, axis=axis) * np.nan
 
 
 def with_spread(value: str, spread: str, seeds: int) -> str:

@@ -114,7 +114,8 @@ class ProgressDisplay:
         elif not quiet:
             self.console.print("compiling...", highlight=False)
 
-    def __call__(self, steps: int, sps: float, episode_return: float, entropy: float) -> None:
+    def __call__(self, steps: int, metrics: dict[str, float]) -> None:
+        sps, episode_return, entropy = metrics["sps"], metrics["episode_return"], metrics["policy_entropy"]
         line = f"steps {steps:>11,}  sps {sps:>10,.0f}  return {episode_return:8.2f}  entropy {entropy:7.3f}"
         if self.compiling and not self.quiet and not self.live:
             self.console.print(f"compiled and first chunk done after {time.perf_counter() - self.started:.1f} s", highlight=False)

@@ -121,16 +121,20 @@ def print_summary(summary: dict[str, Any]) -> None:
     for point in summary["grid"]:
         label = "".join(f" {k}={v:g}" for k, v in point["hparams"].items())
         seeds = len(point["seeds"])
-        final = with_spread(f"{point['final_return_mean']:.2f}", f" ± {point['final_return_std']:.2f}", seeds)
-        evaluated = ""
-        if "eval_return_mean" in point:
-            deterministic = with_spread(f"{point['eval_return_mean']:.2f}", f" ± {point['eval_return_std']:.2f}", seeds)
-            evaluated = f", deterministic eval return {deterministic}"
-        print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated} over {seeds} seed(s)")
+        final = mean_and_spread(point, "final_return")
+        evaluated = f", deterministic eval return {mean_and_spread(point, 'eval_return')}" if "eval_return_mean" in point else ""
+        spread = with_spread("", " (mean ± sample std)", seeds)
+        print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated}{spread} over {seeds} seed(s)")
     print(
         f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
         f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"
     )
+
+
+def mean_and_spread(point: dict[str, Any], name: str) -> str:
+    """summary.json's NAME_mean ± NAME_std ("179.43 ± 119.75"); the mean alone where there is no spread (one seed)."""
+    std = point[f"{name}_std"]
+    return f"{point[f'{name}_mean']:.2f}" + ("" if std is None else f" ± {std:.2f}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

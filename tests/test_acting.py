@@ -30,8 +30,9 @@ def test_the_deterministic_action_is_the_clipped_location_of_the_normalised_obse
 def test_a_policy_is_a_pytree_that_samples_within_the_bounds():
     policy = make_policy(Config(dist="laplace"))
     obs = jnp.ones((64, 3))
-    act = jax.jit(lambda policy, obs, key: policy(obs, key))
+    act = jax.jit(lambda policy, obs, key: policy(obs, key, deterministic=False))
     actions = act(policy, obs, jax.random.PRNGKey(2))
     assert actions.shape == (64, 2) and bool(jnp.all(jnp.abs(actions) <= 0.3))
-    np.testing.assert_allclose(actions, policy(obs, jax.random.PRNGKey(2)), rtol=1e-5, atol=1e-7)  # jit may fuse differently
+    sampled = policy(obs, jax.random.PRNGKey(2), deterministic=False)
+    np.testing.assert_allclose(actions, sampled, rtol=1e-5, atol=1e-7)  # jit may fuse differently
     assert len(jax.tree.leaves(policy)) == len(jax.tree.leaves((policy.params, policy.obs_stats))) + 2

@@ -60,7 +60,7 @@ def test_every_output_file_is_written_and_valid(run_dir):
     assert summary["total_timesteps"] == num_updates * 8 * 16
     per_seed = [final_return([r["episode_return"] for r in rows if r["seed"] == s]) for s in (3, 4)]
     assert summary["final_return_mean"] == pytest.approx(np.mean(per_seed))
-    assert summary["final_return_std"] == pytest.approx(np.std(per_seed))
+    assert summary["final_return_std"] == pytest.approx(np.std(per_seed, ddof=1)) and summary["final_return_n"] == 2
     for field in ("compile_seconds", "train_seconds", "sps"):
         assert summary[field] > 0
 
@@ -85,8 +85,8 @@ def test_load_policy_acts_like_the_trained_parameters(run_dir):
 
     policy = load_policy(run_dir, run=seed_index)
     # The policy is jitted and this reference is not: XLA's fusion may round the last bit.
-    np.testing.assert_allclose(policy(obs, key), expected_sample, rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(policy(obs, key, deterministic=True), jnp.clip(loc, -1, 1), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(policy(obs, key, deterministic=False), expected_sample, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(policy(obs), jnp.clip(loc, -1, 1), rtol=1e-6, atol=1e-6)  # deterministic by default
     single = policy(obs[0], key, deterministic=True)
     assert single.shape == (1,)
 

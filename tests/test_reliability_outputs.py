@@ -19,7 +19,7 @@ from test_reliability import TINY_FLAGS, one_line
 
 from scipy import stats
 
-from rpo_jax import evaluate, export, load_policy, runner, tracking, train
+from rpo_jax import evaluate, export, load_policy, report, runner, tracking, train
 from rpo_jax.envs import __main__ as envs_main
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import CONFIG_FILE
@@ -223,7 +223,7 @@ def test_exports_record_the_distribution_and_sample_as_the_library(finished, tmp
     # Many draws at one observation: the exported sampler's against the library's policy.
     obs = np.tile(np.array([[0.3, -0.2]], np.float32), (SAMPLES, 1))
     exported = export.sample(arrays, obs, np.random.default_rng(0))[:, 0]
-    library = np.asarray(load_policy(run)(obs, jax.random.PRNGKey(0)))[:, 0]
+    library = np.asarray(load_policy(run)(obs, jax.random.PRNGKey(0), deterministic=False))[:, 0]
     assert stats.ks_2samp(exported, library).pvalue > 1e-3
     # The test tells the families apart: a sampler of another family is refused.
     for other in set(export.SAMPLERS) - {dist}:
@@ -362,6 +362,7 @@ def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_c
     root = tmp_path / wandb_dir / "wandb" if wandb_dir else out / "wandb"
     assert [path.relative_to(root).parts[0].startswith("offline-run-") for path in root.rglob("*.wandb")] == [True]
     assert not (root / "wandb").exists() and (out / "wandb").exists() == (wandb_dir is None)
+    assert report.main([str(out)]) == 0  # a run's report beside its wandb/
 
 
 # --------------------------------------------------------------------------------------------
