@@ -20,7 +20,7 @@ from point_mass import PointMass
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
 from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
-from rpo_jax import envs, runner, train
+from rpo_jax import envs, experiment, runner, train
 from rpo_jax.envs import registry
 from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
 
@@ -176,12 +176,12 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
 # Item 6: a resume on another layout is refused unless asked for
 
 
-def train_on_cpu_devices(count: int, *args: str) -> subprocess.CompletedProcess:
-    """`python -m rpo_jax.train ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
+def train_on_cpu_devices(count: int, *args: str, command: str = "rpo_jax.train") -> subprocess.CompletedProcess:
+    """`python -m COMMAND ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
     as JAX starts), where the point mass is importable as point_mass:PointMass."""
     environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
     environment |= {"PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
-    command = [sys.executable, "-m", "rpo_jax.train", *args, "--cpu-devices", str(count)]
+    command = [sys.executable, "-m", command, *args, "--cpu-devices", str(count)]
     return subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
 
 
@@ -200,6 +200,23 @@ def test_a_resume_on_another_device_count_is_refused_unless_allowed(tmp_path, ca
     assert not (out / SUMMARY_FILE).exists()
     assert train.main(["--resume", str(out), "--quiet", "--allow-relayout"]) == 0
     assert json.loads((out / SUMMARY_FILE).read_text())["devices"] == 1
+
+
+def test_an_experiment_resumed_on_another_device_count_is_refused_unless_allowed(tmp_path, capsys):
+    out = tmp_path / "experiment"
+    flags = ["ppo-vs-rpo", "--envs", "point_mass:PointMass", "--jobs", "rpo", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2",
+             "--checkpoint-every", "1024", "--out", str(out)]  # fmt: skip
+    trained = train_on_cpu_devices(2, *flags, command="rpo_jax.experiment")
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    run = out / "runs" / "point_mass_PointMass" / "rpo"
+    (run / SUMMARY_FILE).unlink()  # as if killed after its last checkpoint; this process has one device
+    assert experiment.main(flags) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {run}: the run was trained by 1 process(es) on 2 device(s), and would "), line
+    assert line.endswith("or add --allow-relayout to continue on this one"), line
+    assert not (run / SUMMARY_FILE).exists()
+    assert experiment.main([*flags, "--allow-relayout"]) == 0
+    assert json.loads((run / SUMMARY_FILE).read_text())["devices"] == 1
 
 
 def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
