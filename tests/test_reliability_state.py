@@ -16,6 +16,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import pytest
+from broken_envs import EndlessSimulators
 from point_mass import PointMass
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
 from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
@@ -234,6 +235,10 @@ def lying(spec: envs.EnvSpec):
     return type("Lying", (PointMass,), {"spec": spec})
 
 
+def Unbuildable(num_envs: int, seed: int):
+    raise RuntimeError("no simulator here")
+
+
 class ShapeError(PointMass):
     def step(self, state, action):
         return super().step(state, jnp.concatenate([action, action]) @ jnp.ones((3,)))
@@ -248,6 +253,11 @@ LIARS = {
                  "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
     "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
     "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+    # A host-side one: its program takes the spec's sizes on trust, so a simulator is reset for real.
+    "host-obs-size": (lambda: envs.HostEnv(envs.EnvSpec("host-obs-size", 3, 1, (-1.0,), (1.0,), 5, "host"), EndlessSimulators),
+                      "a reset on the host: obs has shape (1, 2), the spec needs (1, 3)"),
+    "host-raises": (lambda: envs.HostEnv(envs.EnvSpec("host-raises", 2, 1, (-1.0,), (1.0,), 5, "host"), Unbuildable),
+                    "a reset on the host: raised RuntimeError: no simulator here"),
 }  # fmt: skip
 
 
