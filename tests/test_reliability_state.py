@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -23,7 +24,7 @@ from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixt
 
 from rpo_jax import envs, experiment, runner, train
 from rpo_jax.envs import registry
-from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
+from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
@@ -127,6 +128,38 @@ def test_resume_refuses_a_config_json_that_differs_from_the_checkpoint(unfinishe
     line = one_line(capsys)
     assert line.startswith(f"error: --resume {unfinished}: {message}; a run continues with"), line
     assert not (unfinished / SUMMARY_FILE).exists()
+
+
+@pytest.fixture
+def uncheckpointed(unfinished) -> Path:
+    """`unfinished` as if killed before its first checkpoint: config.json and some rows only."""
+    shutil.rmtree(unfinished / "checkpoints")
+    return unfinished
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("plan", {"seed": "x"}, "config.json's plan is not one the flags allow: seed must be int, got 'x'"),
+        ("config", {"lr": 0.002}, "config.json's lr is 0.002, but the run was started with 0.001; a run resumes with"),
+        ("config", {"dist": "laplace"}, "config.json's dist is 'laplace', but the run was started with 'gaussian'; "),
+        ("plan", {"seed": 7}, "config.json's seed is 7, but the run was started with 1; a run resumes with the values"),
+    ],
+)
+def test_resume_before_any_checkpoint_refuses_config_json_as_with_one(uncheckpointed, capsys, part, changes, message):
+    # No checkpoint to compare with: config.json's record of the run's start is the reference.
+    edit_config(uncheckpointed, part, **changes)
+    assert train.main(["--resume", str(uncheckpointed), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {uncheckpointed}: {message}"), line
+    assert not (uncheckpointed / SUMMARY_FILE).exists()
+
+
+def test_resume_before_any_checkpoint_starts_over_as_the_run_and_takes_other_edits(finished, uncheckpointed):
+    edit_config(uncheckpointed, "plan", checkpoint_every=0)  # not a field that changes training
+    assert train.main(["--resume", str(uncheckpointed), "--quiet"]) == 0
+    assert (uncheckpointed / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert not RunDir(uncheckpointed).has_checkpoint()  # the edited checkpoint_every was taken
 
 
 def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unfinished, capsys):
