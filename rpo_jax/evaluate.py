@@ -16,16 +16,19 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
+import errno
+import os
 import sys
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Sequence
 
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
+from rpo_jax.files import written_whole
 from rpo_jax.rundir import check_new_file
 from rpo_jax.scores import sample_std, with_spread
 from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
@@ -62,17 +65,39 @@ def record_video(
     width: int = 640, height: int = 480,
 ) -> tuple[float, int]:  # fmt: skip
     """Renders one episode to `path` (MP4); returns its return and length. `check_video` first."""
-    import imageio.v2 as imageio
-
     positions, total = episode_positions(env, policy, key, deterministic)
-    frames = render(env, positions, width, height)
-    with warnings.catch_warnings():
-        # imageio-ffmpeg starts its encoder with a preexec_fn, which makes Python run JAX's
-        # at-fork hook and its warning about forking a multithreaded process; the child execs
-        # ffmpeg at once and runs no JAX, so the warning does not apply.
-        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-        imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
+    write_mp4(path, render(env, positions, width, height), round(1.0 / env.control_dt))
     return total, len(positions) - 1
+
+
+def write_mp4(path: Path, frames: list[np.ndarray], fps: int) -> None:
+    """Encodes `frames` ([height, width, 3] uint8 each) to `path` with the video extra's ffmpeg,
+    whole or not at all (`files.written_whole`). imageio's writer leaves ffmpeg's failure (a full
+    disk) unseen, its messages on the terminal: ffmpeg's own here, its failure an OSError in one line."""
+    import subprocess
+    import tempfile
+
+    import imageio_ffmpeg
+    import numpy as np
+
+    height, width = frames[0].shape[:2]
+    with written_whole(path, ".tmp" + path.suffix) as tmp, tempfile.TemporaryFile() as log:
+        command = [
+            imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
+            "-s", f"{width}x{height}", "-r", str(fps), "-i", "-", "-an", "-vcodec", "libx264", "-pix_fmt", "yuv420p",
+            "-f", "mp4", str(tmp),
+        ]  # fmt: skip
+        encoder = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
+        with contextlib.suppress(BrokenPipeError):  # ffmpeg stopped early: its exit code and log say why
+            for frame in frames:
+                encoder.stdin.write(np.ascontiguousarray(frame, np.uint8).tobytes())
+            encoder.stdin.close()
+        if encoder.wait():
+            log.seek(0)
+            said = log.read().decode(errors="replace").strip().splitlines() or [f"exit code {encoder.returncode}"]
+            if any(os.strerror(errno.ENOSPC) in line for line in said):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+            raise OSError(errno.EIO, f"--video not written (ffmpeg: {said[-1][:200]})", str(path))
 
 
 def check_video_path(path: Path) -> None:
@@ -89,7 +114,7 @@ def check_video(env: envs.Env) -> None:
     if not isinstance(env, envs.Renderable):
         raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
     try:
-        import imageio.v2  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401
     except ImportError:
         raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
 

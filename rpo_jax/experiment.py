@@ -348,7 +348,7 @@ def run_jobs(
             print(f"{prefix}: finished earlier", flush=True)
             continue
         if RunDir(directory).has_config():
-            run_plan = plan.resumed_plan(directory)
+            run_plan = dataclasses.replace(plan.resumed_plan(directory), allow_relayout=args.processes.allow_relayout)
             print(f"{prefix}: resuming", flush=True)
         else:
             # Killed before its config was written: nothing of the run exists yet.

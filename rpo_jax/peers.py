@@ -46,10 +46,14 @@ def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> 
         unanswered.start()
         try:
             client.key_value_increment(f"{BEAT}{me}", 1)
-            beats = {peer: _get(client, f"{BEAT}{peer}") for peer in last_change if _get(client, f"{FINISHED}{peer}") is None}
+            for peer in [peer for peer in last_change if _get(client, f"{FINISHED}{peer}") is not None]:
+                del last_change[peer]  # it ended normally: never watched again
+            beats = {peer: _get(client, f"{BEAT}{peer}") for peer in last_change}
         except Exception as error:  # noqa: BLE001 - any failure of the store: the coordinator is gone
             _exit(f"the coordinator {coordinator} stopped answering ({type(error).__name__})")
         unanswered.cancel()
+        if not last_change:
+            return  # every other process has ended normally: nothing left to watch
         now = time.monotonic()
         for peer, value in beats.items():
             seen, since = last_change[peer]

@@ -196,10 +196,14 @@ def resumed_plan(out: Path) -> RunPlan:
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
     placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config)
-    return RunPlan(
+    resumed = RunPlan(
         out=out, config=config, resuming=True, grid=tuple(grid), placement=placement,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
     )  # fmt: skip
+    if not run_dir.has_checkpoint():  # nothing trained is kept: config.json's record of the start is the reference
+        advice = "a run resumes with the values it was started with; give new values to a new run (another --out)"
+        check_trained_with(resumed, saved.get("trained_with"), "the run was started with", advice)
+    return resumed
 
 
 def check_saved_plan(plan: dict[str, Any], config: Config) -> list[dict[str, float]]:
@@ -230,19 +234,18 @@ def training_record(plan: RunPlan) -> dict[str, Any]:
     return json.loads(json.dumps(fields))
 
 
-def check_trained_with(plan: RunPlan, record: dict[str, Any]) -> None:
-    """Refuses to continue a checkpoint with a config.json that differs from its record in a
-    field that changes training (edited by hand): the run would go on as another one. A
-    checkpoint saved before the record held them, or a field added since, is not compared."""
-    saved = record.get("trained_with")
+def check_trained_with(
+    plan: RunPlan, saved: Any, source: str, advice: str = "a run continues with the values it was trained with"
+) -> None:  # fmt: skip
+    """Refuses to resume with a config.json that differs in a field that changes training (edited
+    by hand) from `saved`, the `training_record` of a checkpoint or of the run's start (`source`
+    says whose: "the checkpoint at update 19 was trained with"): the run would go on as another
+    one. A record written before they were recorded, or a field added since, is not compared."""
     if not isinstance(saved, dict):
         return
     for name, value in training_record(plan).items():
         if name in saved and saved[name] != value:
-            raise UsageError(
-                f"--resume {plan.out}: config.json's {name} is {value!r}, but the checkpoint at update {record.get('update')} "
-                f"was trained with {saved[name]!r}; a run continues with the values it was trained with"
-            )
+            raise UsageError(f"--resume {plan.out}: config.json's {name} is {value!r}, but {source} {saved[name]!r}; {advice}")
 
 
 def parse_sweeps(specs: Sequence[str], config: Config) -> list[dict[str, float]]:
@@ -303,6 +306,8 @@ def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str
         "config": dataclasses.asdict(plan.config),
         "env_spec": dataclasses.asdict(env_spec),
         "plan": {"algo": plan.config.algo, **plan_record(plan)},
+        # What the run starts with, against which a resume before its first checkpoint checks config.json.
+        "trained_with": training_record(plan),
         "versions": versions(),
     }
 

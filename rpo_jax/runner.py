@@ -305,7 +305,8 @@ def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | 
     for line in skipped:
         print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
     if restored is not None:
-        check_trained_with(plan, restored[1])
+        record = restored[1]
+        check_trained_with(plan, record.get("trained_with"), f"the checkpoint at update {record.get('update')} was trained with")
     return restored
 
 

@@ -76,6 +76,9 @@ class Processes:
     """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
     compile_cache: bool = True
     """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
+    allow_relayout: bool = False
+    """when a run resumes: continue on another number of devices or processes than it was trained on; not bit-exact
+    (each layout compiles programs of its own shapes, which round differently), so refused without this flag"""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -48,9 +48,6 @@ class TrainArgs:
     tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
     resume: Path | None = None
     """continue the run in this directory from its last checkpoint (flags given with it must match the run's)"""
-    allow_relayout: bool = False
-    """with --resume: continue on another number of devices or processes than the run was trained on; not bit-exact
-    (each layout compiles programs of its own shapes, which round differently), so refused without this flag"""
 
 
 def parse_args(argv: Sequence[str]) -> TrainArgs:
@@ -88,8 +85,8 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     if args.resume:
         plan = plans.resumed_plan(args.resume)
         check_resume(args, given, {**plans.plan_record(plan), **dataclasses.asdict(plan.config)})
-        return dataclasses.replace(plan, allow_relayout=args.allow_relayout)
-    if args.allow_relayout:
+        return dataclasses.replace(plan, allow_relayout=args.processes.allow_relayout)
+    if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
     env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name

@@ -259,9 +259,10 @@ def test_experiment_and_train_share_their_flags_by_name():
     trains, experiments = help_flags("rpo_jax.train"), help_flags("rpo_jax.experiment")
     # What they share has one name; each has only its own besides (no --seeds for --num-seeds).
     assert experiments - trains == {"--suite", "--envs", "--jobs"}
-    assert trains - experiments == {"--env", "--resume", "--allow-relayout", "--no-allow-relayout"}
+    assert trains - experiments == {"--env", "--resume"}
     for name in ("--num-seeds", "--total-timesteps", "--num-envs", "--num-steps", "--eval-every", "--eval-episodes",
-                 "--cpu-devices", "--quiet", "--out", "--checkpoint-every", "--preset", "--no-compile-cache", "--track"):
+                 "--cpu-devices", "--quiet", "--out", "--checkpoint-every", "--preset", "--no-compile-cache", "--track",
+                 "--allow-relayout"):
         assert name in trains & experiments, name
 
 

@@ -15,8 +15,10 @@ import jax
 import numpy as np
 import pytest
 import test_reliability
+import test_reliability_processes
 from test_reliability import TINY_FLAGS, one_line
 
+from point_mass import PointMass
 from scipy import stats
 
 from rpo_jax import evaluate, export, load_policy, report, runner, tracking, train
@@ -26,6 +28,7 @@ from rpo_jax.rundir import CONFIG_FILE
 
 # The point mass registered as test/point_mass, and its tiny runs, finished and unfinished.
 test_envs, finished, unfinished = test_reliability.test_envs, test_reliability.finished, test_reliability.unfinished
+small_disk = test_reliability_processes.small_disk  # a real 4 MiB tmpfs, as root
 
 SAMPLES = 20_000  # draws per distribution compared
 
@@ -395,3 +398,53 @@ def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp
     assert evaluate.main([str(finished), "--video", video]) == 2
     assert one_line(capsys) == message.format(tmp=tmp_path)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["dangling.mp4", "ro"]
+
+
+# --------------------------------------------------------------------------------------------
+# A full disk at evaluate --video's write
+
+
+NOISE = [np.random.default_rng(0).integers(0, 255, (48, 64, 3), np.uint8) for _ in range(40)]  # hardly compresses
+
+
+def fake_ffmpeg(tmp_path: Path, said: str, code: int) -> str:
+    """An ffmpeg that writes a little of its output, says `said` and exits with `code`."""
+    script = tmp_path / "ffmpeg"
+    script.write_text(f'#!/bin/sh\ncat >/dev/null\nfor last; do :; done\nprintf half >"$last"\necho "{said}" >&2\nexit {code}\n')
+    script.chmod(0o755)
+    return str(script)
+
+
+@pytest.mark.parametrize(
+    "said, message",
+    [
+        ("Error writing trailer: No space left on device", "[Errno 28] No space left on device: '{video}'"),
+        ("Unknown encoder 'libx264'", "[Errno 5] --video not written (ffmpeg: Unknown encoder 'libx264'): '{video}'"),
+    ],
+)
+def test_a_video_ffmpeg_fails_to_write_is_one_oserror_and_leaves_nothing(tmp_path, monkeypatch, said, message):
+    import imageio_ffmpeg
+
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", lambda: fake_ffmpeg(tmp_path, said, 1))
+    video = tmp_path / "out" / "x.mp4"
+    video.parent.mkdir()
+    with pytest.raises(OSError) as raised:
+        evaluate.write_mp4(video, NOISE, 30)
+    assert str(raised.value) == message.format(video=video)
+    assert list(video.parent.iterdir()) == []  # the partial file removed
+
+
+def test_a_video_on_a_real_full_disk_is_one_line_and_leaves_nothing(small_disk, finished, capsys, monkeypatch):
+    pytest.importorskip("imageio_ffmpeg")
+    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
+    (small_disk / "filler").write_bytes(b"\0" * (free - 16 * 1024))
+    video = small_disk / "x.mp4"
+    # The point mass cannot be drawn: its episode is drawn as noise, which does not fit in 16 KiB.
+    monkeypatch.setattr(evaluate, "check_video", lambda env: None)
+    monkeypatch.setattr(evaluate, "episode_positions", lambda *args: ([None] * len(NOISE), 0.0))
+    noise = [np.random.default_rng(step).integers(0, 255, (240, 320, 3), np.uint8) for step in range(10)]  # 2 MB
+    monkeypatch.setattr(evaluate, "render", lambda env, positions, width, height: noise)
+    monkeypatch.setattr(PointMass, "control_dt", 1 / 30, raising=False)
+    assert evaluate.main([str(finished), "--episodes", "2", "--video", str(video)]) == 2
+    assert one_line(capsys) == f"error: No space left on device: {video}"
+    assert sorted(path.name for path in small_disk.iterdir()) == ["filler"]

@@ -5,12 +5,14 @@ run that resumes exactly where something resumable was written."""
 
 from __future__ import annotations
 
+import collections
 import errno
 import os
 import shutil
 import signal
 import socket
 import subprocess
+import threading
 import time
 
 import orbax.checkpoint as ocp
@@ -19,7 +21,7 @@ from tensorboardX.event_file_writer import EventsWriter
 from test_hosts import TINY as CARTPOLE, command, free_port, printed
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
 
-from rpo_jax import runner, train
+from rpo_jax import peers, runner, train
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 __all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
@@ -114,6 +116,38 @@ def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
         "back (--coordinator-timeout SECONDS waits longer)"
     ), line
     assert any(p.name.isdigit() for p in (out / "checkpoints").iterdir())
+
+
+class Store:
+    """The coordinator's key-value store as peers.watch uses it, counting the reads of each key."""
+
+    def __init__(self, values: dict[str, str]) -> None:
+        self.values, self.reads = values, collections.Counter()
+
+    def key_value_increment(self, key: str, by: int) -> None:
+        self.values[key] = str(int(self.values.get(key, "0")) + by)
+
+    def key_value_try_get(self, key: str) -> str:
+        self.reads[key] += 1
+        if key not in self.values:
+            raise RuntimeError(f"NOT_FOUND: {key}")
+        return self.values[key]
+
+
+def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(monkeypatch):
+    # Process 1 ended normally before the watch began, process 2 while watched: each is read no
+    # more once seen finished, and the watch ends then instead of polling the store for ever.
+    monkeypatch.setattr(peers, "_exit", lambda why: pytest.fail(f"a finished peer was taken for a dead one: {why}"))
+    store = Store({f"{peers.FINISHED}1": "1"})
+    watching = threading.Thread(target=peers._watch, args=(store, 0, 3, "localhost:1", 1), daemon=True)
+    watching.start()
+    time.sleep(0.5)  # a few rounds of watching process 2
+    store.values[f"{peers.BEAT}2"] = "1"
+    store.values[f"{peers.FINISHED}2"] = "1"
+    watching.join(timeout=5)
+    assert not watching.is_alive()
+    assert store.reads[f"{peers.FINISHED}1"] == 1 and store.reads[f"{peers.BEAT}1"] == 0
+    assert store.reads[f"{peers.BEAT}2"] >= 2
 
 
 # --------------------------------------------------------------------------------------------

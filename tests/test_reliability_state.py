@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -16,13 +17,14 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import pytest
+from broken_envs import EndlessSimulators
 from point_mass import PointMass
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
 from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
-from rpo_jax import envs, runner, train
+from rpo_jax import envs, experiment, runner, train
 from rpo_jax.envs import registry
-from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE
+from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
@@ -128,6 +130,38 @@ def test_resume_refuses_a_config_json_that_differs_from_the_checkpoint(unfinishe
     assert not (unfinished / SUMMARY_FILE).exists()
 
 
+@pytest.fixture
+def uncheckpointed(unfinished) -> Path:
+    """`unfinished` as if killed before its first checkpoint: config.json and some rows only."""
+    shutil.rmtree(unfinished / "checkpoints")
+    return unfinished
+
+
+@pytest.mark.parametrize(
+    "part, changes, message",
+    [
+        ("plan", {"seed": "x"}, "config.json's plan is not one the flags allow: seed must be int, got 'x'"),
+        ("config", {"lr": 0.002}, "config.json's lr is 0.002, but the run was started with 0.001; a run resumes with"),
+        ("config", {"dist": "laplace"}, "config.json's dist is 'laplace', but the run was started with 'gaussian'; "),
+        ("plan", {"seed": 7}, "config.json's seed is 7, but the run was started with 1; a run resumes with the values"),
+    ],
+)
+def test_resume_before_any_checkpoint_refuses_config_json_as_with_one(uncheckpointed, capsys, part, changes, message):
+    # No checkpoint to compare with: config.json's record of the run's start is the reference.
+    edit_config(uncheckpointed, part, **changes)
+    assert train.main(["--resume", str(uncheckpointed), "--quiet"]) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {uncheckpointed}: {message}"), line
+    assert not (uncheckpointed / SUMMARY_FILE).exists()
+
+
+def test_resume_before_any_checkpoint_starts_over_as_the_run_and_takes_other_edits(finished, uncheckpointed):
+    edit_config(uncheckpointed, "plan", checkpoint_every=0)  # not a field that changes training
+    assert train.main(["--resume", str(uncheckpointed), "--quiet"]) == 0
+    assert (uncheckpointed / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert not RunDir(uncheckpointed).has_checkpoint()  # the edited checkpoint_every was taken
+
+
 def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unfinished, capsys):
     # As one saved before checkpoints recorded them: continued, exactly.
     for checkpoint in (unfinished / "checkpoints").glob("[0-9]*"):
@@ -176,12 +210,12 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
 # Item 6: a resume on another layout is refused unless asked for
 
 
-def train_on_cpu_devices(count: int, *args: str) -> subprocess.CompletedProcess:
-    """`python -m rpo_jax.train ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
+def train_on_cpu_devices(count: int, *args: str, command: str = "rpo_jax.train") -> subprocess.CompletedProcess:
+    """`python -m COMMAND ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
     as JAX starts), where the point mass is importable as point_mass:PointMass."""
     environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
     environment |= {"PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
-    command = [sys.executable, "-m", "rpo_jax.train", *args, "--cpu-devices", str(count)]
+    command = [sys.executable, "-m", command, *args, "--cpu-devices", str(count)]
     return subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
 
 
@@ -202,6 +236,23 @@ def test_a_resume_on_another_device_count_is_refused_unless_allowed(tmp_path, ca
     assert json.loads((out / SUMMARY_FILE).read_text())["devices"] == 1
 
 
+def test_an_experiment_resumed_on_another_device_count_is_refused_unless_allowed(tmp_path, capsys):
+    out = tmp_path / "experiment"
+    flags = ["ppo-vs-rpo", "--envs", "point_mass:PointMass", "--jobs", "rpo", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2",
+             "--checkpoint-every", "1024", "--out", str(out)]  # fmt: skip
+    trained = train_on_cpu_devices(2, *flags, command="rpo_jax.experiment")
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    run = out / "runs" / "point_mass_PointMass" / "rpo"
+    (run / SUMMARY_FILE).unlink()  # as if killed after its last checkpoint; this process has one device
+    assert experiment.main(flags) == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --resume {run}: the run was trained by 1 process(es) on 2 device(s), and would "), line
+    assert line.endswith("or add --allow-relayout to continue on this one"), line
+    assert not (run / SUMMARY_FILE).exists()
+    assert experiment.main([*flags, "--allow-relayout"]) == 0
+    assert json.loads((run / SUMMARY_FILE).read_text())["devices"] == 1
+
+
 def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
     assert train.main([*TINY_FLAGS, "--allow-relayout", "--out", str(tmp_path / "run")]) == 2
     assert one_line(capsys) == "error: --allow-relayout applies to --resume only; a new run trains on the layout it is given"
@@ -215,6 +266,10 @@ def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
 def lying(spec: envs.EnvSpec):
     """The point mass under another spec."""
     return type("Lying", (PointMass,), {"spec": spec})
+
+
+def Unbuildable(num_envs: int, seed: int):
+    raise RuntimeError("no simulator here")
 
 
 class ShapeError(PointMass):
@@ -231,6 +286,11 @@ LIARS = {
                  "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
     "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
     "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+    # A host-side one: its program takes the spec's sizes on trust, so a simulator is reset for real.
+    "host-obs-size": (lambda: envs.HostEnv(envs.EnvSpec("host-obs-size", 3, 1, (-1.0,), (1.0,), 5, "host"), EndlessSimulators),
+                      "a reset on the host: obs has shape (1, 2), the spec needs (1, 3)"),
+    "host-raises": (lambda: envs.HostEnv(envs.EnvSpec("host-raises", 2, 1, (-1.0,), (1.0,), 5, "host"), Unbuildable),
+                    "a reset on the host: raised RuntimeError: no simulator here"),
 }  # fmt: skip
 
 

@@ -2,7 +2,8 @@
 line per problem found (`python -m rpo_jax.envs --check NAME` prints them).
 
 `first_step_problems` is the cheap part that training checks before it compiles: the spec, the
-environment's kind, and the shapes and dtypes of one reset and one step, traced but not run.
+environment's kind, and the shapes and dtypes of one reset and one step, traced but not run (of a
+host-side environment, one simulator's first observation, reset on the host).
 
 A JAX environment is reset and stepped under `jax.jit` for a few steps; if that found nothing,
 `num_envs` copies run vmapped with the trainer's own time limit and auto-reset (`wrappers.VectorEnv`) for one
@@ -19,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax.envs.protocol import BatchedEnv, EnvSpec, TimeStep, Vectorizable
+from rpo_jax.envs.protocol import BatchedEnv, EnvSpec, TimeStep, Vectorizable, first_step
 from rpo_jax.envs.wrappers import vectorize
 
 SINGLE_STEPS = 5  # steps of one environment under jax.jit, before the vmapped episodes
@@ -63,14 +64,27 @@ def first_step_problems(env: Any) -> list[str]:
     """What training checks of `env` before it compiles, at the cost of a trace: `check_env`'s
     checks of the protocol's members, the spec and the environment's kind, and for a JAX
     environment the shapes and dtypes of a reset and a step (`jax.eval_shape`: nothing runs, so
-    no random number of the run is drawn and no simulator is built)."""
+    no random number of the run is drawn and no simulator is built). A host-side environment's
+    program takes the spec's sizes on trust, so one of its simulators is reset for real instead."""
     problems = missing_problems(env)
     if problems:
         return problems
     problems = spec_problems(env.spec) + kind_problems(env)
-    if problems or isinstance(env, Vectorizable):
+    if problems:
         return problems
+    if isinstance(env, Vectorizable):
+        return _guarded("a reset on the host", lambda: host_reset_problems(env))
     return _guarded("a reset and a step, traced", lambda: first_step_shapes(env))
+
+
+def host_reset_problems(env: Vectorizable) -> list[str]:
+    """The first observations of one host simulator, reset for real (no compile), against the
+    spec; a `vectorize` that gives a JAX batch is traced as a JAX environment is."""
+    batch = vectorize(env, 1)
+    if not callable(getattr(batch, "first_observations", None)):
+        return first_step_shapes(batch)
+    first = first_step(jnp.asarray(batch.first_observations(), jnp.float32))  # the dtype the program receives
+    return timestep_problems(first, env.spec, (1,), "a reset on the host")
 
 
 def missing_problems(env: Any) -> list[str]:

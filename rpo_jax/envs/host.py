@@ -135,6 +135,15 @@ class BatchedHostEnv:
         results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
         return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))
 
+    def first_observations(self, seed: int = 0) -> np.ndarray:
+        """The first observations [num_envs, obs] of a fresh pool, reset once on the host and
+        closed: what `reset` would hand the program, read without compiling anything."""
+        pool = self.make_simulators(self.num_envs, seed)
+        try:
+            return np.asarray(pool.reset())
+        finally:
+            pool.close()
+
     def close(self) -> None:
         """Closes and drops every pool that `reset` built; a program still stepping their handles
         gets zeros from then on."""
