@@ -6,7 +6,8 @@
 Returns are the environment's own rewards (no reward scaling or normalisation), one episode
 per parallel environment, each to its end or the time limit.
 
-Videos are drawn offscreen by MuJoCo's renderer. On a machine without a display it needs an
+Videos (`rpo_jax.video`) are drawn offscreen by MuJoCo's renderer, or by a host-side suite's
+own rendering (Gymnasium, DeepMind Control). On a machine without a display MuJoCo needs an
 OpenGL backend that works headless: EGL (Mesa's `libegl1` works on a CPU; rpo_jax picks it
 when no DISPLAY is set) or OSMesa (`MUJOCO_GL=osmesa`, package `libosmesa6`), chosen with the
 MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video` extra:
@@ -15,9 +16,7 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 
 from __future__ import annotations
 
-import copy
 import sys
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -50,90 +49,10 @@ def episode_returns(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array,
     return np.asarray(returns)
 
 
-def record_video(
-    env: envs.Env, policy: ActFn, path: Path, key: jax.Array, deterministic: bool,
-    width: int = 640, height: int = 480,
-) -> tuple[float, int]:  # fmt: skip
-    """Renders one episode to `path` (MP4); returns its return and length. `check_video` first."""
-    import imageio.v2 as imageio
-
-    positions, total = episode_positions(env, policy, key, deterministic)
-    frames = render(env, positions, width, height)
-    with warnings.catch_warnings():
-        # imageio-ffmpeg starts its encoder with a preexec_fn, which makes Python run JAX's
-        # at-fork hook and its warning about forking a multithreaded process; the child execs
-        # ffmpeg at once and runs no JAX, so the warning does not apply.
-        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-        imageio.mimwrite(path, frames, fps=round(1.0 / env.control_dt), macro_block_size=1)
-    return total, len(positions) - 1
-
-
 def check_video_path(path: Path) -> None:
     """Refuses, before any work, a --video file that cannot be written (ffmpeg would fail only
     after the evaluation, in its own words)."""
     check_new_file("--video", path)
-
-
-def check_video(env: envs.Env) -> None:
-    """Refuses, before the evaluation runs, --video for an environment that cannot be drawn or
-    without the extra that writes MP4."""
-    from rpo_jax import envs
-
-    if not isinstance(env, envs.Renderable):
-        raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
-    try:
-        import imageio.v2  # noqa: F401
-    except ImportError:
-        raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
-
-
-def episode_positions(env: envs.Env, policy: ActFn, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
-    """The joint positions of one episode, from its reset on, and its return."""
-    import jax
-    import numpy as np
-
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
-    act = jax.jit(lambda obs, key: policy(obs, key, deterministic))
-    reset_key, key = jax.random.split(key)
-    state, ts = reset(reset_key)
-    positions, total, length = [np.asarray(env.qpos(state))], 0.0, 0
-    # The episode ends as TimeLimit would end it: at termination or after max_episode_steps.
-    while length < env.spec.max_episode_steps and not (length and bool(ts.terminated | ts.truncated)):
-        key, act_key = jax.random.split(key)
-        state, ts = step(state, act(ts.obs, act_key))
-        positions.append(np.asarray(env.qpos(state)))
-        total, length = total + float(ts.reward), length + 1
-    return positions, total
-
-
-def render(env: envs.Env, positions: list[np.ndarray], width: int, height: int) -> list[np.ndarray]:
-    """One offscreen frame per joint position."""
-    import mujoco
-
-    # A copy lit by a brighter headlight (models written for simulation often have no lights),
-    # seen from closer than MuJoCo's default framing of the whole model.
-    model = copy.copy(env.mj_model)
-    model.vis.headlight.ambient[:] = 0.45
-    model.vis.headlight.diffuse[:] = 0.7
-    data = mujoco.MjData(model)
-    camera = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(model, camera)
-    camera.distance *= 0.6
-    try:
-        renderer = mujoco.Renderer(model, height, width)
-    except mujoco.FatalError as error:
-        raise UsageError(
-            f"--video: no OpenGL context for offscreen rendering ({error}); on a headless machine set "
-            "MUJOCO_GL=egl (libegl1) or MUJOCO_GL=osmesa (libosmesa6)"
-        ) from None
-    frames = []
-    with renderer:
-        for qpos in positions:
-            data.qpos[:] = qpos
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera)
-            frames.append(renderer.render())
-    return frames
 
 
 def build_parser() -> ArgumentParser:
@@ -164,7 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
         import jax
 
-        from rpo_jax import envs
+        from rpo_jax import envs, video
         from rpo_jax.envs.registry import check_import_outside
         from rpo_jax.policy import load_policy
 
@@ -174,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except UsageError as error:
             raise UsageError(f"{args.run_dir}: its environment cannot be rebuilt: {error}") from None
         if args.video:
-            check_video(env)
+            video.check_video(env, "--video")
         policy = load_policy(args.run_dir, args.run)
         key = jax.random.PRNGKey(args.seed)
         returns = episode_returns(env, policy, args.episodes, key, args.deterministic)
@@ -184,8 +103,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"return {returns.mean():.2f} ± {returns.std():.2f} over {args.episodes} episodes"
         )
         if args.video:
-            total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), args.deterministic)
-            print(f"video: {args.video} ({length} steps, return {total:.2f})")
+            (episode,) = video.record(env, policy, 1, jax.random.fold_in(key, 1), args.deterministic)
+            video.write_mp4(args.video, [episode])
+            print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
     return exit.code
 
 

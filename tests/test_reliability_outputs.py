@@ -353,7 +353,8 @@ def test_an_out_through_a_dangling_symlink_is_refused_naming_it(tmp_path, capsys
     [
         ("ro/x.mp4", "error: --video ro/x.mp4: the directory {tmp}/ro is not writable (read-only file system or no permission)"),
         ("dangling.mp4", "error: --video dangling.mp4 already exists; choose a new file"),
-        ("x.mp4", "error: --video: point_mass is not a MuJoCo-based environment that rpo_jax can draw"),
+        ("x.mp4", "error: --video: point_mass cannot be drawn; videos are of MuJoCo-based environments (cartpole, ballbalance, "
+         "brax/*, mjx-dmc/*) and of the host-side suites that draw themselves (gymnasium/*, gym/BipedalWalker-v3, dmc/*)"),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp_path, capsys, monkeypatch, video, message):
