@@ -61,9 +61,10 @@ class EventFile:
 
 class TensorBoardSink:
     """TensorBoard events, one directory per run, rebuilt from the kept rows on resume: the
-    trainer's metrics and steps/s under train/, the evaluation return under eval/, and each
-    run's hyperparameters for TensorBoard's HParams view. Written and flushed with the rows, so
-    that what metrics.jsonl holds TensorBoard holds."""
+    trainer's metrics and steps/s under train/, the evaluation return under eval/, the videos
+    of --capture-video as animated GIFs under video/, and each run's hyperparameters for
+    TensorBoard's HParams view. Written and flushed with the rows, so that what metrics.jsonl
+    holds TensorBoard holds."""
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
         from tensorboardX.summary import hparams
@@ -86,7 +87,8 @@ class TensorBoardSink:
             file.add_scalar("train/sps", row["sps"], step)
             if "eval_return" in row:
                 file.add_scalar("eval/episode_return", row["eval_return"], step)
-            if "video" in row:
+            # A resumed run rebuilds from the kept rows: a video deleted since has no picture to show.
+            if "video" in row and (self.run_dir.path / row["video"]).exists():
                 file.add(gif_summary("video/episodes", self.run_dir.path / row["video"]), step)
         for file in self.files:
             file.flush()

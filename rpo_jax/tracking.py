@@ -6,7 +6,7 @@ seed as its W&B config. The seeds of one sweep point share a W&B group, `GROUP/P
 GROUP is the run directory's name by default (an experiment passes `experiment/env/job`) and
 POINT the swept values, so W&B's grouped view shows each point's mean over seeds. Rows are
 logged at `env_steps`: the trainer's metrics under `train/`, `eval/episode_return` where the
-row has an evaluation and `train/sps`.
+row has an evaluation, `video/episodes` (the MP4) where it has a video, and `train/sps`.
 
 W&B's files go to the run directory's `wandb/` (offline runs for `wandb sync` to upload later),
 or under the directory the WANDB_DIR variable names. Online, W&B's credentials (`wandb login`,

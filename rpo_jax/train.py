@@ -6,10 +6,11 @@
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
-Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
-parameters (see `rpo_jax.load_policy`) to --out, and checkpoints (see `rpo_jax.checkpoint`)
-from which `--resume` continues an interrupted run: exactly, except that host-side simulators,
-which no checkpoint holds, start fresh episodes. Every field of `rpo_jax.config.Config` and of
+Writes config.json, metrics.jsonl, summary.json, TensorBoard events, videos with
+--capture-video (`rpo_jax.video`) and the trained parameters (see `rpo_jax.load_policy`) to
+--out, and checkpoints (see `rpo_jax.checkpoint`) from which `--resume` continues an
+interrupted run: exactly, except that host-side simulators, which no checkpoint holds, start
+fresh episodes. Every field of `rpo_jax.config.Config` and of
 the run's spec (`rpo_jax.spec`, which `rpo_jax.experiment` shares) is a flag; tyro reads them
 from `TrainArgs`, and JAX is imported only after they parse.
 """
