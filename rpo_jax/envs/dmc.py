@@ -23,6 +23,7 @@ quadruped-walk); those extra keys are left out. Episodes end by truncation at 10
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Any
 
@@ -109,17 +110,25 @@ class DmcSimulators:
         self.pool.close()
 
 
+@functools.cache
+def gl_context() -> Any:
+    """An OpenGL context of the installed MuJoCo's, kept for the process's life, which envpool's
+    MuJoCo draws with where it is current: without one, once a pool has been built, envpool
+    finds no OpenGL ("gladLoadGL error", and the process exits). Its backend is MUJOCO_GL's
+    (`rpo_jax.envs` chose EGL where no display is)."""
+    import mujoco
+
+    return mujoco.GLContext(8, 8)
+
+
 class DrawnDmcTask:
     """One task drawn by envpool's own MuJoCo renderer from the task's first camera
-    (`host.DrawnSimulator`). envpool's MuJoCo draws in an OpenGL context of its own, but only
-    once the process has loaded an OpenGL platform library (EGL or OSMesa: `rpo_jax.envs`
-    chose it), which a context of the installed MuJoCo loads; that context is freed at once."""
+    (`host.DrawnSimulator`), in the calling thread."""
 
     def __init__(self, task: str, seed: int, width: int, height: int) -> None:
         import envpool
-        import mujoco
 
-        mujoco.GLContext(8, 8).free()  # loads the platform library, which stays loaded
+        gl_context().make_current()
         self.keys = [key for key, _ in TASKS[task][1]]
         self.pool = envpool.make_dm(
             envpool_task_id(task), num_envs=1, num_threads=1, seed=seed,
@@ -140,6 +149,7 @@ class DrawnDmcTask:
         return self._observe(ts.observation), float(ts.reward[0]), last and discount == 0, last and discount > 0
 
     def frame(self) -> np.ndarray:
+        gl_context().make_current()  # MuJoCo's renderers make theirs current meanwhile
         return self.pool.render()[0]
 
     def close(self) -> None:
