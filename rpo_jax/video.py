@@ -121,13 +121,14 @@ class Capture:
         if not self.draws:
             return self.paths(env_steps)
         keys = jax.vmap(lambda key: jax.random.fold_in(key, env_steps))(keys)
-        if drawn_by_host(self.env):
-            runs = [self.host_run(jax.tree.map(lambda x, run=run: x[run], inputs), keys[run]) for run in range(len(self.labels))]
-        else:
-            qpos, rewards, ended = jax.device_get(self.rollout(inputs, keys))
-            runs = [drawn_episodes(self.env, qpos[run], rewards[run], ended[run]) for run in range(len(self.labels))]
+        # The positions of every run's episodes in one program; the frames of one run at a time.
+        positions = None if drawn_by_host(self.env) else jax.device_get(self.rollout(inputs, keys))
         paths = self.paths(env_steps)
-        for path, episodes in zip(paths, runs):
+        for run, path in enumerate(paths):
+            if positions is None:
+                episodes = self.host_run(jax.tree.map(lambda x: x[run], inputs), keys[run])  # noqa: B023 (called at once)
+            else:
+                episodes = drawn_episodes(self.env, *(array[run] for array in positions))
             (self.out / path).parent.mkdir(parents=True, exist_ok=True)
             write_mp4(self.out / path, episodes)
         return paths
