@@ -7,7 +7,8 @@ The policy acts deterministically (the location of its distribution) unless --st
 result says which. Returns are the environment's own rewards (no reward scaling or normalisation), one episode
 per parallel environment, each to its end or the time limit.
 
-Videos are drawn offscreen by MuJoCo's renderer. On a machine without a display it needs an
+Videos (`rpo_jax.video`) are drawn offscreen by MuJoCo's renderer, or by a host-side suite's
+own rendering (Gymnasium, DeepMind Control). On a machine without a display MuJoCo needs an
 OpenGL backend that works headless: EGL (Mesa's `libegl1` works on a CPU; rpo_jax picks it
 when no DISPLAY is set) or OSMesa (`MUJOCO_GL=osmesa`, package `libosmesa6`), chosen with the
 MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video` extra:
@@ -16,11 +17,7 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 
 from __future__ import annotations
 
-import contextlib
-import copy
 import dataclasses
-import errno
-import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Sequence
@@ -28,7 +25,6 @@ from typing import TYPE_CHECKING, Annotated, Sequence
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.files import written_whole
 from rpo_jax.rundir import check_new_file
 from rpo_jax.scores import sample_std, with_spread
 from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
@@ -60,112 +56,10 @@ def episode_returns(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array,
     return np.asarray(returns)
 
 
-def record_video(
-    env: envs.Env, policy: ActFn, path: Path, key: jax.Array, deterministic: bool,
-    width: int = 640, height: int = 480,
-) -> tuple[float, int]:  # fmt: skip
-    """Renders one episode to `path` (MP4); returns its return and length. `check_video` first."""
-    positions, total = episode_positions(env, policy, key, deterministic)
-    write_mp4(path, render(env, positions, width, height), round(1.0 / env.control_dt))
-    return total, len(positions) - 1
-
-
-def write_mp4(path: Path, frames: list[np.ndarray], fps: int) -> None:
-    """Encodes `frames` ([height, width, 3] uint8 each) to `path` with the video extra's ffmpeg,
-    whole or not at all (`files.written_whole`). imageio's writer leaves ffmpeg's failure (a full
-    disk) unseen, its messages on the terminal: ffmpeg's own here, its failure an OSError in one line."""
-    import subprocess
-    import tempfile
-
-    import imageio_ffmpeg
-    import numpy as np
-
-    height, width = frames[0].shape[:2]
-    with written_whole(path, ".tmp" + path.suffix) as tmp, tempfile.TemporaryFile() as log:
-        command = [
-            imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",
-            "-s", f"{width}x{height}", "-r", str(fps), "-i", "-", "-an", "-vcodec", "libx264", "-pix_fmt", "yuv420p",
-            "-f", "mp4", str(tmp),
-        ]  # fmt: skip
-        encoder = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
-        with contextlib.suppress(BrokenPipeError):  # ffmpeg stopped early: its exit code and log say why
-            for frame in frames:
-                encoder.stdin.write(np.ascontiguousarray(frame, np.uint8).tobytes())
-            encoder.stdin.close()
-        if encoder.wait():
-            log.seek(0)
-            said = log.read().decode(errors="replace").strip().splitlines() or [f"exit code {encoder.returncode}"]
-            if any(os.strerror(errno.ENOSPC) in line for line in said):
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-            raise OSError(errno.EIO, f"--video not written (ffmpeg: {said[-1][:200]})", str(path))
-
-
 def check_video_path(path: Path) -> None:
     """Refuses, before any work, a --video file that cannot be written (ffmpeg would fail only
     after the evaluation, in its own words)."""
     check_new_file("--video", path)
-
-
-def check_video(env: envs.Env) -> None:
-    """Refuses, before the evaluation runs, --video for an environment that cannot be drawn or
-    without the extra that writes MP4."""
-    from rpo_jax import envs
-
-    if not isinstance(env, envs.Renderable):
-        raise UsageError(f"--video: {env.spec.name} is not a MuJoCo-based environment that rpo_jax can draw")
-    try:
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
-        raise UsageError("--video needs the video extra: pip install -e '.[video]'") from None
-
-
-def episode_positions(env: envs.Env, policy: ActFn, key: jax.Array, deterministic: bool) -> tuple[list[np.ndarray], float]:
-    """The joint positions of one episode, from its reset on, and its return."""
-    import jax
-    import numpy as np
-
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
-    act = jax.jit(lambda obs, key: policy(obs, key, deterministic))
-    reset_key, key = jax.random.split(key)
-    state, ts = reset(reset_key)
-    positions, total, length = [np.asarray(env.qpos(state))], 0.0, 0
-    # The episode ends as TimeLimit would end it: at termination or after max_episode_steps.
-    while length < env.spec.max_episode_steps and not (length and bool(ts.terminated | ts.truncated)):
-        key, act_key = jax.random.split(key)
-        state, ts = step(state, act(ts.obs, act_key))
-        positions.append(np.asarray(env.qpos(state)))
-        total, length = total + float(ts.reward), length + 1
-    return positions, total
-
-
-def render(env: envs.Env, positions: list[np.ndarray], width: int, height: int) -> list[np.ndarray]:
-    """One offscreen frame per joint position."""
-    import mujoco
-
-    # A copy lit by a brighter headlight (models written for simulation often have no lights),
-    # seen from closer than MuJoCo's default framing of the whole model.
-    model = copy.copy(env.mj_model)
-    model.vis.headlight.ambient[:] = 0.45
-    model.vis.headlight.diffuse[:] = 0.7
-    data = mujoco.MjData(model)
-    camera = mujoco.MjvCamera()
-    mujoco.mjv_defaultFreeCamera(model, camera)
-    camera.distance *= 0.6
-    try:
-        renderer = mujoco.Renderer(model, height, width)
-    except mujoco.FatalError as error:
-        raise UsageError(
-            f"--video: no OpenGL context for offscreen rendering ({error}); on a headless machine set "
-            "MUJOCO_GL=egl (libegl1) or MUJOCO_GL=osmesa (libosmesa6)"
-        ) from None
-    frames = []
-    with renderer:
-        for qpos in positions:
-            data.qpos[:] = qpos
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera)
-            frames.append(renderer.render())
-    return frames
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,11 +105,12 @@ def run_command(args: EvaluateArgs) -> None:
         check_video_path(args.video)
     import jax
 
+    from rpo_jax import video
     from rpo_jax.policy import load_policy
 
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:
-        check_video(env)
+        video.check_video(env, "--video")
     policy = load_policy(args.trained.run_dir, args.trained.run)
     key = jax.random.PRNGKey(args.seed)
     deterministic = not args.stochastic
@@ -227,8 +122,9 @@ def run_command(args: EvaluateArgs) -> None:
         f"return {spread} over {args.eval_episodes} episodes"
     )
     if args.video:
-        total, length = record_video(env, policy, args.video, jax.random.fold_in(key, 1), deterministic)
-        print(f"video: {args.video} ({length} steps, return {total:.2f})")
+        (episode,) = video.record(env, policy, 1, jax.random.fold_in(key, 1), deterministic)
+        video.write_mp4(args.video, [episode])
+        print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
 
 
 def policy_mode(deterministic: bool) -> str:

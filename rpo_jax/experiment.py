@@ -156,7 +156,10 @@ NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
 OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
 # experiments recorded before they could be given continue.
-RECORDED_WHERE_GIVEN = {"seed": 1, "log_every": None, "devices": None, "shard_envs": False}
+RECORDED_WHERE_GIVEN = {
+    "seed": 1, "log_every": None, "devices": None, "shard_envs": False,
+    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2,
+}  # fmt: skip
 
 
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:

@@ -34,21 +34,27 @@ from rpo_jax.spec import Processes, RunSpec
 # steps/s), which a crash would rarely repay, and under 1% from 5M steps on.
 CHECKPOINTS_PER_RUN = 10
 CHECKPOINT_MIN_RUN_STEPS = 5_000_000
+# Videos during training by default (--capture-video without --capture-video-every), the last at the end.
+VIDEOS_PER_RUN = 4
 # jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
 SEED_LIMIT = 2**32
 # The plan's fields that config.json records and a resumed run reads back; runs recorded before
 # evaluation during training existed lack the eval fields and read back with evaluation off.
 PLAN_FIELDS = (
     "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
-    "devices", "shard_envs",
+    "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes",
 )  # fmt: skip
 # What a resumed run of a config.json written before a field existed reads for it.
-PLAN_DEFAULTS = {"eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False}
+PLAN_DEFAULTS = {
+    "eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False,
+    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2,
+}  # fmt: skip
 # The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
 PLAN_TYPES: dict[str, tuple[type, ...]] = {
     "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
     "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
     "devices": (int, type(None)), "shard_envs": (bool,),
+    "capture_video": (bool,), "capture_video_every": (int, type(None)), "capture_video_episodes": (int,),
 }  # fmt: skip
 # The plan's fields that decide the numbers a run trains to, besides every Config field: each
 # checkpoint records them (`training_record`), and a resume whose config.json differs is refused.
@@ -72,6 +78,9 @@ class RunPlan:
     eval_episodes: int = 10
     devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
     shard_envs: bool = False  # split each run's environments over the devices instead of the runs
+    capture_video: bool = False  # videos of the deterministic policy during training (rpo_jax.video)
+    capture_video_every: int | None = None  # env steps per run between videos; None: VIDEOS_PER_RUN
+    capture_video_episodes: int = 2
     resuming: bool = False
     allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
     # Built once with the plan, from the fields above: the sweep's points and the runs' placement.
@@ -86,6 +95,14 @@ class RunPlan:
     def eval_updates(self) -> int | None:
         """Updates between evaluations; None when evaluation is off."""
         return max(1, self.eval_every // self.config.batch_size) if self.eval_every else None
+
+    @property
+    def video_updates(self) -> int | None:
+        """Updates between videos; None when they are off."""
+        if not self.capture_video:
+            return None
+        every = self.capture_video_every or self.config.num_updates * self.config.batch_size // VIDEOS_PER_RUN
+        return max(1, every // self.config.batch_size)
 
     @property
     def run_dir(self) -> RunDir:
@@ -112,6 +129,8 @@ def new_plan(
         log_every=run.log_every or max(1, config.num_updates // 100),
         checkpoint_every=default_checkpoint_every(run_steps) if run.checkpoint_every is None else run.checkpoint_every,
         eval_every=run.eval_every, eval_episodes=run.eval_episodes, devices=processes.devices,
+        capture_video=run.capture_video, capture_video_every=run.capture_video_every,
+        capture_video_episodes=run.capture_video_episodes,
         shard_envs=processes.shard_envs, grid=tuple(grid),
         # A bad layout is refused here, before anything is written.
         placement=make_placement(processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config),
@@ -148,7 +167,20 @@ def check_run(env: str, config: Config, run: RunSpec) -> list[dict[str, float]]:
         raise UsageError(
             f"--eval-every must be >= 0 (0: never) and --eval-episodes >= 1, got {run.eval_every}, {run.eval_episodes}"
         )
+    check_video_fields(run)
     return grid
+
+
+def check_video_fields(run: RunSpec) -> None:
+    """Refuses a video interval or episode count below 1, and either without --capture-video."""
+    default_episodes = RunSpec.capture_video_episodes
+    if not run.capture_video and (run.capture_video_every is not None or run.capture_video_episodes != default_episodes):
+        raise UsageError("--capture-video-every and --capture-video-episodes apply with --capture-video only; add it")
+    if (run.capture_video_every is not None and run.capture_video_every < 1) or run.capture_video_episodes < 1:
+        raise UsageError(
+            "--capture-video-every and --capture-video-episodes must be >= 1, "
+            f"got {run.capture_video_every}, {run.capture_video_episodes}"
+        )
 
 
 def check_seeds(seed: int, num_seeds: int) -> None:

@@ -15,16 +15,17 @@ from rpo_jax.scores import sample_std, tail_mean
 
 def logged_rows(
     plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float | None,
-    eval_returns: np.ndarray | None = None,
+    eval_returns: np.ndarray | None = None, videos: list[str] | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
     With `eval_returns` (one per run, after the chunk's last update) that update is logged too,
-    its rows with `eval_return`; rows of runs without evaluation have no such field."""
+    its rows with `eval_return`; rows of runs without evaluation have no such field. `videos`
+    (one path per run, in the run directory) likewise, as `video`."""
     rows = []
     last = first_update + chunk
     for offset in range(chunk):
         update = first_update + offset + 1
-        evaluated = eval_returns is not None and update == last
+        evaluated = (eval_returns is not None or videos is not None) and update == last
         if update % plan.log_every and update != plan.config.num_updates and not evaluated:
             continue
         for index, run in enumerate(runs):
@@ -33,8 +34,10 @@ def logged_rows(
             values["env_steps"] = update * plan.config.batch_size
             values["episodes_finished"] = int(values["episodes_finished"])
             rows.append({"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps})
-            if evaluated:
+            if evaluated and eval_returns is not None:
                 rows[-1]["eval_return"] = float(eval_returns[index])
+            if evaluated and videos is not None:
+                rows[-1]["video"] = videos[index]
     return rows
 
 

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax import devices, envs, ppo
+from rpo_jax import devices, envs, ppo, video
 from rpo_jax.acting import Policy, first_episode_returns
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
@@ -109,6 +109,8 @@ class Compiled:
     # (real runs' evaluation_inputs, keys) -> each run's mean deterministic return; None: evaluation off
     run_eval: Callable[[dict[str, Any], jax.Array], jax.Array] | None = None
     eval_keys: jax.Array | None = None
+    capture: video.Capture | None = None  # None: no videos during training
+    video_keys: jax.Array | None = None
 
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
@@ -124,6 +126,8 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     grid = list(plan.grid)
     env = envs.make_env(plan.env)
     check_environment(plan.env, env)
+    if plan.capture_video:
+        video.check_video(env, "--capture-video")
     if not is_primary():
         with _interruptible(plan.out), _out_of_memory_refused():
             return train_locked(plan, env, grid, (), None)
@@ -227,7 +231,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
     trainer = placement.make_trainer(config, env)
-    chunk = chunk_length(config.num_updates, at_most=plan.eval_updates)
+    chunk = chunk_length(config.num_updates, at_most=min(filter(None, (plan.eval_updates, plan.video_updates)), default=None))
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
@@ -249,12 +253,24 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
                 state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
     run_eval = compile_evaluation(plan, env, trainer) if plan.eval_every else None
-    # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.
-    eval_keys = jax.vmap(lambda key: jax.random.fold_in(key, EVAL_STREAM))(keys)
-    return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
+    labels = [run_label(run, list(plan.grid[0])) for run in runs]
+    capture = None
+    if plan.capture_video:
+        capture = video.Capture(plan.out, env, run_policy(trainer, env), plan.capture_video_episodes, labels, is_primary())
+    # Evaluation and video keys of their own, so that they leave training's random numbers alone.
+    eval_keys, video_keys = (jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, stream) for stream in STREAMS)
+    return Compiled(
+        trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys, capture, video_keys
+    )  # fmt: skip
 
 
-EVAL_STREAM = 0x5EED
+STREAMS = (0x5EED, 0x71DE0)  # evaluation's and videos'
+
+
+def run_policy(trainer: ppo.Trainer, env: envs.Env) -> Callable[[dict[str, Any]], Policy]:
+    """A run's deterministic-capable `Policy` from its `evaluation_inputs`."""
+    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
+    return lambda inputs: Policy(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high)
 
 
 def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Callable:
@@ -263,11 +279,10 @@ def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Ca
     environment, scored by the environment's own rewards (no scaling or normalisation). For a
     host-side environment the copies are a pool of their own simulators. It takes the real runs'
     `evaluation_inputs` on the host, wherever the runs train, and compiles at its first call."""
-    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
-    copies = envs.vectorize(env, plan.eval_episodes)
+    copies, make_policy = envs.vectorize(env, plan.eval_episodes), run_policy(trainer, env)
 
     def evaluate(inputs: dict[str, Any], key: jax.Array) -> jax.Array:
-        policy = Policy(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high)
+        policy = make_policy(inputs)
         key = jax.random.fold_in(key, inputs["update"])
         returns, _ = first_episode_returns(copies, policy, plan.eval_episodes, key, deterministic=True)
         return returns.mean()
@@ -323,21 +338,40 @@ def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any])
 def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int) -> np.ndarray | None:
     """Each run's evaluation return when an evaluation falls due in the chunk that ended at
     `first_update + chunk` (and after the last update), else None."""
-    if compiled.run_eval is None:
-        return None
-    every, done = plan.eval_updates, first_update + compiled.chunk
-    if done // every == first_update // every and done != plan.config.num_updates:
+    if compiled.run_eval is None or not falls_due(plan, plan.eval_updates, first_update, compiled.chunk):
         return None
     inputs = compiled.placement.real_runs(evaluation_inputs(compiled.trainer, state))
     return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
 
 
+def after_chunk(
+    plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int, clock: Clock
+) -> tuple[np.ndarray | None, list[str] | None]:  # fmt: skip
+    """The evaluation returns and the videos' paths, one per run, that fall due in the chunk
+    that ended at `first_update + chunk` (and after the last update), each timed apart; None
+    where none falls due."""
+    eval_returns, videos = evaluate_after_chunk(plan, compiled, state, first_update), None
+    clock.lap("eval_seconds")
+    if compiled.capture and falls_due(plan, plan.video_updates, first_update, compiled.chunk):
+        inputs = jax.device_get(compiled.placement.real_runs(evaluation_inputs(compiled.trainer, state)))
+        videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
+    clock.lap("video_seconds")
+    return eval_returns, videos
+
+
+def falls_due(plan: RunPlan, every: int | None, first_update: int, chunk: int) -> bool:
+    """Whether a multiple of `every` updates, or the last update, falls in the chunk after `first_update`."""
+    done = first_update + chunk
+    return done // every != first_update // every or done == plan.config.num_updates
+
+
 class Clock:
     """The seconds of a run by what they were spent on: training (the chunks and the host's work
-    between them), evaluation (with its compile) and checkpointing, so that train_seconds and
-    steps/s count training only. A resumed run's go on from its checkpoint's record."""
+    between them), evaluation (with its compile), videos (drawing and writing them, with their
+    compile) and checkpointing, so that train_seconds and steps/s count training only. A resumed
+    run's go on from its checkpoint's record."""
 
-    KINDS = ("train_seconds", "eval_seconds", "checkpoint_seconds")
+    KINDS = ("train_seconds", "eval_seconds", "video_seconds", "checkpoint_seconds")
 
     def __init__(self, record: dict[str, Any]) -> None:
         self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
@@ -376,14 +410,15 @@ def train_chunks(
                 if metrics_file:
                     write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
                 raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
-            eval_returns = evaluate_after_chunk(plan, compiled, state, first_update)
-            clock.lap("eval_seconds")
-            rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns)
+            eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock)
+            rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
             if metrics_file:
                 write_rows(metrics_file, rows)
             record_returns(rows, logged_returns)
             for sink in sinks:
                 sink.write(rows)
+            if videos:
+                clock.lap("video_seconds")  # the sinks' copies of the videos (TensorBoard's GIFs, W&B's uploads)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 clock.lap("train_seconds")
                 save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 import shutil
 import time
 from pathlib import Path
@@ -10,6 +11,7 @@ from typing import Any
 
 from rpo_jax.ppo import Metrics
 from rpo_jax.rundir import RunDir
+from rpo_jax.video import ffmpeg_started
 
 # The trainer's metrics less the step counter, which is TensorBoard's x axis.
 TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name != "env_steps")
@@ -59,14 +61,16 @@ class EventFile:
 
 class TensorBoardSink:
     """TensorBoard events, one directory per run, rebuilt from the kept rows on resume: the
-    trainer's metrics and steps/s under train/, the evaluation return under eval/, and each
-    run's hyperparameters for TensorBoard's HParams view. Written and flushed with the rows, so
-    that what metrics.jsonl holds TensorBoard holds."""
+    trainer's metrics and steps/s under train/, the evaluation return under eval/, the videos
+    of --capture-video as animated GIFs under video/, and each run's hyperparameters for
+    TensorBoard's HParams view. Written and flushed with the rows, so that what metrics.jsonl
+    holds TensorBoard holds."""
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
         from tensorboardX.summary import hparams
 
         shutil.rmtree(run_dir.tensorboard, ignore_errors=True)
+        self.run_dir = run_dir
         self.files = [EventFile(run_dir.tensorboard / label) for label in labels]
         record = run_dir.read_config()
         for file, run in zip(self.files, record["runs"]):
@@ -83,12 +87,37 @@ class TensorBoardSink:
             file.add_scalar("train/sps", row["sps"], step)
             if "eval_return" in row:
                 file.add_scalar("eval/episode_return", row["eval_return"], step)
+            # A resumed run rebuilds from the kept rows: a video deleted since has no picture to show.
+            if "video" in row and (self.run_dir.path / row["video"]).exists():
+                file.add(gif_summary("video/episodes", self.run_dir.path / row["video"]), step)
         for file in self.files:
             file.flush()
 
     def close(self) -> None:
         for file in self.files:
             file.events.close()
+
+
+GIF_FPS, GIF_SCALE = 20, 2  # TensorBoard's animations: at most 20 frames a second, half the video's size
+
+
+def gif_summary(tag: str, path: Path) -> Any:
+    """A TensorBoard image summary of the MP4 at `path` as an animated GIF, which TensorBoard's
+    image view plays (tensorboardX's own video summary needs moviepy)."""
+    import imageio.v2 as imageio
+    from PIL import Image
+    from tensorboardX.proto.summary_pb2 import Summary
+
+    with ffmpeg_started(), imageio.get_reader(path) as reader:
+        fps = reader.get_meta_data()["fps"]
+        every = max(1, round(fps / GIF_FPS))
+        frames = [Image.fromarray(frame) for index, frame in enumerate(reader) if index % every == 0]
+    width, height = frames[0].width // GIF_SCALE, frames[0].height // GIF_SCALE
+    frames = [frame.resize((width, height)) for frame in frames]
+    buffer = io.BytesIO()
+    frames[0].save(buffer, format="GIF", save_all=True, append_images=frames[1:], duration=1000 * every / fps, loop=0)
+    image = Summary.Image(height=height, width=width, colorspace=3, encoded_image_string=buffer.getvalue())
+    return Summary(value=[Summary.Value(tag=tag, image=image)])
 
 
 class ProgressDisplay:

@@ -49,6 +49,12 @@ class RunSpec:
     eval_every: int = 0
     """evaluate the deterministic policy every N env steps per run (in whole chunks of updates) and at the end; 0: never"""
     eval_episodes: EvalEpisodes = 10
+    capture_video: bool = False
+    """draw episodes of each run's deterministic policy into OUT/videos (and TensorBoard, W&B) during training"""
+    capture_video_every: int | None = None
+    """with --capture-video: every N env steps per run (in whole chunks of updates) and at the end; None: 4 per run"""
+    capture_video_episodes: int = 2
+    """with --capture-video: episodes per video"""
 
 
 @dataclasses.dataclass(frozen=True)

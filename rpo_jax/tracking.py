@@ -6,7 +6,7 @@ seed as its W&B config. The seeds of one sweep point share a W&B group, `GROUP/P
 GROUP is the run directory's name by default (an experiment passes `experiment/env/job`) and
 POINT the swept values, so W&B's grouped view shows each point's mean over seeds. Rows are
 logged at `env_steps`: the trainer's metrics under `train/`, `eval/episode_return` where the
-row has an evaluation and `train/sps`.
+row has an evaluation, `video/episodes` (the MP4) where it has a video, and `train/sps`.
 
 W&B's files go to the run directory's `wandb/` (offline runs for `wandb sync` to upload later),
 or under the directory the WANDB_DIR variable names. Online, W&B's credentials (`wandb login`,
@@ -41,6 +41,7 @@ class WandbSink:
         """Starts (or, for a resumed run, continues under the same ids) one W&B run per run.
         The kept rows are not sent again: the process that logged them sent them."""
         record = run_dir.read_config()
+        self.run_dir = run_dir
         group = self.group or run_dir.path.name
         # W&B makes its `wandb/` in `dir`; WANDB_DIR, where set, is the user's choice of that directory.
         directory = None if os.environ.get("WANDB_DIR") else str(run_dir.path)
@@ -63,6 +64,8 @@ class WandbSink:
             values["train/sps"] = row["sps"]
             if "eval_return" in row:
                 values["eval/episode_return"] = row["eval_return"]
+            if "video" in row:
+                values["video/episodes"] = self.wandb.Video(str(self.run_dir.path / row["video"]), format="mp4")
             self.runs[row["run"]].log(values, step=row["env_steps"])
 
     def close(self) -> None:

@@ -6,10 +6,11 @@
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
-Writes config.json, metrics.jsonl, summary.json, TensorBoard events and the trained
-parameters (see `rpo_jax.load_policy`) to --out, and checkpoints (see `rpo_jax.checkpoint`)
-from which `--resume` continues an interrupted run: exactly, except that host-side simulators,
-which no checkpoint holds, start fresh episodes. Every field of `rpo_jax.config.Config` and of
+Writes config.json, metrics.jsonl, summary.json, TensorBoard events, videos with
+--capture-video (`rpo_jax.video`) and the trained parameters (see `rpo_jax.load_policy`) to
+--out, and checkpoints (see `rpo_jax.checkpoint`) from which `--resume` continues an
+interrupted run: exactly, except that host-side simulators, which no checkpoint holds, start
+fresh episodes. Every field of `rpo_jax.config.Config` and of
 the run's spec (`rpo_jax.spec`, which `rpo_jax.experiment` shares) is a flag; tyro reads them
 from `TrainArgs`, and JAX is imported only after they parse.
 """
@@ -146,6 +147,16 @@ def resume_line(out: object | None) -> str:
     return "nothing was written" if out is None else f"continue with: {PROG} --resume {out}"
 
 
+def checked_capture(plan: Any) -> Any:
+    """`plan`, once --capture-video is known to draw its environment: refused here in one line,
+    before the progress display starts (the runner checks again, for the library's callers)."""
+    if plan.capture_video:
+        from rpo_jax import envs, video
+
+        video.check_video(envs.make_env(plan.env), "--capture-video")
+    return plan
+
+
 def run_command(argv: list[str]) -> int:
     args = parse_args(argv)
     from rpo_jax import devices  # JAX, first used here: the CPU split and the processes joined first
@@ -154,7 +165,7 @@ def run_command(argv: list[str]) -> int:
     devices.split_cpu(where.cpu_devices)
     devices.join_processes(where.coordinator, where.num_processes, where.process_id, where.distributed, where.coordinator_timeout)
     devices.check_cpu_split(where.cpu_devices)
-    plan = devices.refused_together(lambda: make_plan(args, argv))
+    plan = devices.refused_together(lambda: checked_capture(make_plan(args, argv)))
     summary = train_with_display(plan, args.tracking, args.processes)
     if devices.is_primary():
         print_summary(summary)

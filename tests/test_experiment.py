@@ -217,7 +217,7 @@ def test_evaluation_renders_a_video(uninterrupted, tmp_path):
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)  # reading starts ffmpeg too
         frames = imageio.mimread(video, memtest=False)
-    assert len(frames) > 10 and frames[0].shape == (480, 640, 3)
+    assert len(frames) > 10 and frames[0].shape == (360, 480, 3)
     assert np.ptp(np.asarray(frames[len(frames) // 2])) > 50  # something was drawn
     assert evaluate.main([str(job_dir(uninterrupted, "rpo")), "--video", str(video)]) == 2  # never overwritten
 

@@ -128,7 +128,7 @@ def test_one_deterministic_number_in_training_through_load_policy_evaluate_and_o
     out, summary, _ = evaluated_run
     in_training = summary["runs"][0]["eval_return"]
     # The evaluation's episodes: the key the runner evaluated the last update with.
-    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), runner.EVAL_STREAM), TINY.num_updates)
+    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), runner.STREAMS[0]), TINY.num_updates)
     copies = envs.vectorize(envs.make_env(ENV), EVAL_EPISODES)
     loaded = rpo_jax.load_policy(out, 0)
     through_evaluate = evaluate.episode_returns(copies, loaded, EVAL_EPISODES, key, deterministic=True).mean()

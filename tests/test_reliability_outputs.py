@@ -18,10 +18,10 @@ import test_reliability
 import test_reliability_processes
 from test_reliability import TINY_FLAGS, one_line
 
-from point_mass import PointMass
 from scipy import stats
 
 from rpo_jax import evaluate, export, load_policy, report, runner, tracking, train
+from rpo_jax import video as rpo_video
 from rpo_jax.envs import __main__ as envs_main
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import CONFIG_FILE
@@ -386,7 +386,8 @@ def test_an_out_through_a_dangling_symlink_is_refused_naming_it(tmp_path, capsys
     [
         ("ro/x.mp4", "error: --video ro/x.mp4: the directory {tmp}/ro is not writable (read-only file system or no permission)"),
         ("dangling.mp4", "error: --video dangling.mp4 already exists; choose a new file"),
-        ("x.mp4", "error: --video: point_mass is not a MuJoCo-based environment that rpo_jax can draw"),
+        ("x.mp4", "error: --video: point_mass cannot be drawn; videos are of MuJoCo-based environments (cartpole, ballbalance, "
+         "brax/*, mjx-dmc/*) and of the host-side suites that draw themselves (gymnasium/*, gym/BipedalWalker-v3, dmc/*)"),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp_path, capsys, monkeypatch, video, message):
@@ -429,7 +430,7 @@ def test_a_video_ffmpeg_fails_to_write_is_one_oserror_and_leaves_nothing(tmp_pat
     video = tmp_path / "out" / "x.mp4"
     video.parent.mkdir()
     with pytest.raises(OSError) as raised:
-        evaluate.write_mp4(video, NOISE, 30)
+        rpo_video.write_mp4(video, [rpo_video.Episode(NOISE, 0.0, 30)])
     assert str(raised.value) == message.format(video=video)
     assert list(video.parent.iterdir()) == []  # the partial file removed
 
@@ -440,11 +441,9 @@ def test_a_video_on_a_real_full_disk_is_one_line_and_leaves_nothing(small_disk, 
     (small_disk / "filler").write_bytes(b"\0" * (free - 16 * 1024))
     video = small_disk / "x.mp4"
     # The point mass cannot be drawn: its episode is drawn as noise, which does not fit in 16 KiB.
-    monkeypatch.setattr(evaluate, "check_video", lambda env: None)
-    monkeypatch.setattr(evaluate, "episode_positions", lambda *args: ([None] * len(NOISE), 0.0))
+    monkeypatch.setattr(rpo_video, "check_video", lambda env, flag: None)
     noise = [np.random.default_rng(step).integers(0, 255, (240, 320, 3), np.uint8) for step in range(10)]  # 2 MB
-    monkeypatch.setattr(evaluate, "render", lambda env, positions, width, height: noise)
-    monkeypatch.setattr(PointMass, "control_dt", 1 / 30, raising=False)
+    monkeypatch.setattr(rpo_video, "record", lambda *args: [rpo_video.Episode(noise, 0.0, 30)])
     assert evaluate.main([str(finished), "--episodes", "2", "--video", str(video)]) == 2
     assert one_line(capsys) == f"error: No space left on device: {video}"
     assert sorted(path.name for path in small_disk.iterdir()) == ["filler"]

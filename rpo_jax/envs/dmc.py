@@ -23,6 +23,7 @@ quadruped-walk); those extra keys are left out. Episodes end by truncation at 10
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Any
 
@@ -42,6 +43,14 @@ def _spec(task: str) -> EnvSpec:
 
 
 SPECS = {f"dmc/{task}": _spec(task) for task in TASKS}
+# Seconds per control step of dm_control's domains (as MuJoCo Playground's ports record them),
+# for the frame rate of videos; the domains it does not port take DEFAULT_CONTROL_SECONDS.
+CONTROL_SECONDS = {
+    "acrobot": 0.01, "ball_in_cup": 0.02, "cartpole": 0.01, "cheetah": 0.01, "finger": 0.02, "fish": 0.04,
+    "hopper": 0.02, "humanoid": 0.025, "pendulum": 0.02, "point_mass": 0.02, "reacher": 0.02, "swimmer": 0.03,
+    "walker": 0.025,
+}  # fmt: skip
+DEFAULT_CONTROL_SECONDS = 0.02
 
 
 def envpool_task_id(task: str) -> str:
@@ -101,9 +110,58 @@ class DmcSimulators:
         self.pool.close()
 
 
+@functools.cache
+def gl_context() -> Any:
+    """An OpenGL context of the installed MuJoCo's, kept for the process's life, which envpool's
+    MuJoCo draws with where it is current: without one, once a pool has been built, envpool
+    finds no OpenGL ("gladLoadGL error", and the process exits). Its backend is MUJOCO_GL's
+    (`rpo_jax.envs` chose EGL where no display is)."""
+    import mujoco
+
+    return mujoco.GLContext(8, 8)
+
+
+class DrawnDmcTask:
+    """One task drawn by envpool's own MuJoCo renderer from the task's first camera
+    (`host.DrawnSimulator`), in the calling thread."""
+
+    def __init__(self, task: str, seed: int, width: int, height: int) -> None:
+        import envpool
+
+        gl_context().make_current()
+        self.keys = [key for key, _ in TASKS[task][1]]
+        self.pool = envpool.make_dm(
+            envpool_task_id(task), num_envs=1, num_threads=1, seed=seed,
+            render_mode="rgb_array", render_width=width, render_height=height, render_camera_id=0,
+        )  # fmt: skip
+        self.fps = 1.0 / CONTROL_SECONDS.get(task.split("-")[0], DEFAULT_CONTROL_SECONDS)
+        self.env_ids = np.zeros(1, int)
+
+    def _observe(self, observation: Any) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(observation, key)).reshape(-1) for key in self.keys])
+
+    def reset(self) -> np.ndarray:
+        return self._observe(self.pool.reset(self.env_ids).observation)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        ts = self.pool.step(np.asarray(action, np.float64)[None], self.env_ids)
+        last, discount = bool(ts.step_type[0] == 2), float(ts.discount[0])  # dm_env.StepType.LAST
+        return self._observe(ts.observation), float(ts.reward[0]), last and discount == 0, last and discount > 0
+
+    def frame(self) -> np.ndarray:
+        gl_context().make_current()  # MuJoCo's renderers make theirs current meanwhile
+        return self.pool.render()[0]
+
+    def close(self) -> None:
+        self.pool.close()
+
+
 def make(task: str) -> HostEnv:
     try:
         import envpool  # noqa: F401
     except ImportError:
         raise MissingExtraError(f"dmc/{task}", "envpool", "dmc") from None
-    return HostEnv(SPECS[f"dmc/{task}"], lambda num_envs, seed: DmcSimulators(task, num_envs, seed))
+    return HostEnv(
+        SPECS[f"dmc/{task}"], lambda num_envs, seed: DmcSimulators(task, num_envs, seed),
+        lambda seed, width, height: DrawnDmcTask(task, seed, width, height),
+    )  # fmt: skip

@@ -30,10 +30,10 @@ def _import_gymnasium(name: str) -> Any:
     return gymnasium
 
 
-def _make_one(gym_id: str, name: str) -> Any:
+def _make_one(gym_id: str, name: str, **kwargs: Any) -> Any:
     gymnasium = _import_gymnasium(name)
     try:
-        return gymnasium.make(gym_id)
+        return gymnasium.make(gym_id, **kwargs)
     except gymnasium.error.Error as error:
         # Unknown ids and versions, and missing dependencies (Box2D), whose messages say what to install.
         message = re.sub(r"\s+", " ", str(error)).strip()
@@ -83,6 +83,30 @@ def _close(env: Any) -> None:
     env.close()
 
 
+class DrawnTask:
+    """One Gymnasium task that draws itself (`render_mode="rgb_array"`, at its own size and
+    frame rate): `host.DrawnSimulator`."""
+
+    def __init__(self, gym_id: str, name: str, seed: int) -> None:
+        self.env = _make_one(gym_id, name, render_mode="rgb_array")
+        self.seed = seed
+        self.fps = float(self.env.metadata.get("render_fps") or 30)
+
+    def reset(self) -> np.ndarray:
+        obs = self.env.reset(seed=self.seed)[0]
+        self.seed += 1  # the next episode starts elsewhere
+        return obs
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        return _step(self.env, action)
+
+    def frame(self) -> np.ndarray:
+        return np.asarray(self.env.render())
+
+    def close(self) -> None:
+        self.env.close()
+
+
 def make(gym_id: str, name: str | None = None) -> HostEnv:
     """Gymnasium's task `gym_id` behind the host path, named `name` (default gymnasium/<id>).
     Simulator i of a pool seeded `seed` is seeded from (seed, i)."""
@@ -97,4 +121,4 @@ def make(gym_id: str, name: str | None = None) -> HostEnv:
         make_seeded = lambda index, seed: _seeded(gym_id, name, index, seed)
         return SequentialSimulators(num_envs, seed, make_seeded, _reset, _step, _close)
 
-    return HostEnv(spec, make_simulators)
+    return HostEnv(spec, make_simulators, lambda seed, width, height: DrawnTask(gym_id, name, seed))

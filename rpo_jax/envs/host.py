@@ -80,6 +80,31 @@ def step_side_by_side(pools: list[HostSimulators], actions: np.ndarray) -> list[
 SimulatorFactory = Callable[[int, int], HostSimulators]
 
 
+class DrawnSimulator(Protocol):
+    """One simulator that draws itself with its suite's own rgb_array rendering, for videos;
+    stepped without auto-reset, one episode from each `reset`."""
+
+    fps: float  # frames (steps) per second of simulated time
+
+    def reset(self) -> np.ndarray:
+        """The first observation [obs] of a fresh episode."""
+        ...
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        """action [act] -> (obs, reward, terminated, truncated)."""
+        ...
+
+    def frame(self) -> np.ndarray:
+        """The current picture [height, width, 3] uint8."""
+        ...
+
+    def close(self) -> None: ...
+
+
+# (seed, width, height) -> a simulator that draws itself, at that size where its suite lets it choose.
+DrawnSimulatorFactory = Callable[[int, int, int], DrawnSimulator]
+
+
 @struct.dataclass
 class HostState:
     handle: jax.Array  # [] int32: the pool of simulators this run steps
@@ -89,10 +114,13 @@ class HostEnv:
     """An environment registered for host-side stepping, before its batch size is chosen.
 
     `envs.make_env` returns one of these for a host suite; `vectorize(num_envs)` gives the
-    batched environment that the trainer steps (`envs.vectorize` does it for any env)."""
+    batched environment that the trainer steps (`envs.vectorize` does it for any env).
+    `make_drawn`, where the suite can draw, builds one simulator that renders for videos."""
 
-    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory) -> None:
-        self.spec, self.make_simulators = spec, make_simulators
+    def __init__(
+        self, spec: EnvSpec, make_simulators: SimulatorFactory, make_drawn: DrawnSimulatorFactory | None = None
+    ) -> None:
+        self.spec, self.make_simulators, self.make_drawn = spec, make_simulators, make_drawn
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
         return BatchedHostEnv(self.spec, self.make_simulators, num_envs)

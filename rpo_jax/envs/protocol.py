@@ -117,7 +117,10 @@ class Vectorizable(Protocol):
 
 @runtime_checkable
 class Renderable(Protocol):
-    """What a MuJoCo-based environment adds so that `rpo_jax.evaluate --video` can draw it."""
+    """What a MuJoCo-based environment adds so that videos (`rpo_jax.evaluate --video`, `train
+    --capture-video`) can draw it: its model, and the joint positions of a state. An environment
+    may also have a `render_model`, a copy of `mj_model` with the same joints dressed for
+    pictures (light, floor, colours), which videos draw instead."""
 
     mj_model: mujoco.MjModel
     control_dt: float  # seconds per step, for the video's frame rate

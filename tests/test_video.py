@@ -1,0 +1,244 @@
+"""Videos: `train --capture-video` (files, rows, TensorBoard and W&B, time kept out of steps/s),
+the environments that draw (MJX through MuJoCo's renderer with a dressed scene, Gymnasium and
+DeepMind Control through their own rendering) and the refusal of those that cannot."""
+
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from point_mass import PointMass
+from test_host import SPEC as HOST_SPEC
+from test_host import PointMassSim, host_point_mass
+from test_tools import read_wandb_run
+
+from rpo_jax import envs, runner, train, video
+from rpo_jax.envs.host import HostEnv
+
+TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
+
+POINT_MASS_XML = """
+<mujoco>
+  <worldbody>
+    <light pos="0 0 3"/>
+    <geom type="plane" size="3 3 0.1" pos="0 0 -0.2" rgba="0.4 0.5 0.6 1" contype="0" conaffinity="0"/>
+    <camera name="front" pos="0 -3 0.5" xyaxes="1 0 0 0 0.2 1"/>
+    <body>
+      <joint type="slide" axis="1 0 0"/>
+      <geom type="sphere" size="0.15" rgba="0.9 0.4 0.1 1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+class DrawnPointMass(PointMass):
+    """The point mass with what `envs.Renderable` asks: a MuJoCo model whose one joint is its
+    position, drawn by MuJoCo's renderer as an environment of one's own would be."""
+
+    control_dt = 0.1
+
+    def __init__(self):
+        import mujoco
+
+        self.mj_model = mujoco.MjModel.from_xml_string(POINT_MASS_XML)
+
+    @staticmethod
+    def qpos(state):
+        return state[:1]
+
+
+class DrawnPointMassSim(PointMassSim):
+    """The host point mass drawing itself (`host.DrawnSimulator`) without OpenGL: a bar whose
+    length is the position."""
+
+    fps = 10.0
+
+    def frame(self):
+        picture = np.zeros((video.HEIGHT, video.WIDTH, 3), np.uint8)
+        picture[:, : int((self.state[0] + 3) / 6 * video.WIDTH)] = 200
+        return picture
+
+    def close(self):
+        pass
+
+
+def drawn_host_point_mass():
+    return HostEnv(HOST_SPEC, host_point_mass().make_simulators, lambda seed, width, height: DrawnPointMassSim(0, seed))
+
+
+def gl_problem():
+    """Why MuJoCo cannot draw offscreen here (no OpenGL: CI's CPU-only machines), or None."""
+    import mujoco
+
+    try:
+        mujoco.Renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 8, 8).close()
+    except Exception as error:
+        return f"no offscreen OpenGL for MuJoCo here: {type(error).__name__}: {error}"
+    return None
+
+
+needs_gl = pytest.mark.skipif(gl_problem() is not None, reason=str(gl_problem()))
+
+
+def read_frames(path):
+    imageio = pytest.importorskip("imageio.v2")
+    with video.ffmpeg_started():
+        return imageio.mimread(path, memtest=False)
+
+
+@pytest.fixture
+def drawn_envs(isolated_registry):
+    envs.register_env("drawn_point_mass", DrawnPointMass, PointMass.spec)
+    envs.register_env("drawn_host_point_mass", drawn_host_point_mass, HOST_SPEC)
+    envs.register_env("point_mass", PointMass, PointMass.spec)
+
+
+@needs_gl
+def test_cartpole_is_drawn_lit_on_a_floor_in_colour_and_its_physics_model_is_untouched():
+    env = envs.make_env("cartpole")
+    frame = video.draw(env, [np.array([0.5, 0.4])])[0]
+    assert frame.shape == (video.HEIGHT, video.WIDTH, 3)
+    assert frame.mean() > 60  # the issue's grey bodies on black had a mean pixel of 1.3
+    floor, sky = frame[-video.HEIGHT // 4 :], frame[: video.HEIGHT // 8]
+    assert floor.mean() > 40 and np.ptp(floor) > 40  # a chequered floor, lit to the bottom of the frame
+    assert sky[..., 2].mean() > sky[..., 0].mean() + 20  # a blue sky
+    orange = (frame[..., 0] > 150) & (frame[..., 2] < 100)
+    assert orange.sum() > 100  # the cart
+    # What is drawn is a copy: the physics model has no light, floor or camera, and the copy's joints are its own.
+    physics, drawn = env.mj_model, env.render_model
+    assert (physics.nlight, physics.ngeom, physics.ncam) == (0, 3, 0)
+    assert (drawn.nq, drawn.nv, drawn.nu, drawn.nbody) == (physics.nq, physics.nv, physics.nu, physics.nbody)
+    floor_geom = drawn.geom("floor")
+    assert (int(floor_geom.contype[0]), int(floor_geom.conaffinity[0])) == (0, 0)
+
+
+@needs_gl
+def test_a_recorded_cartpole_video_has_one_frame_per_state_of_each_episode(tmp_path):
+    env = envs.make_env("cartpole")
+    push = lambda obs, key, deterministic: jnp.ones(obs.shape[:-1] + (1,))  # drives the cart off its rail
+    episodes = video.record(env, push, 2, jax.random.PRNGKey(0), deterministic=True)
+    assert len(episodes) == 2 and all(0 < episode.steps < env.spec.max_episode_steps for episode in episodes)
+    assert [episode.fps for episode in episodes] == [60.0, 60.0]
+    video.write_mp4(tmp_path / "push.mp4", episodes)
+    frames = read_frames(tmp_path / "push.mp4")
+    assert len(frames) == sum(episode.steps + 1 for episode in episodes)
+    assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["push.mp4"]  # no partial file left
+
+
+@pytest.mark.slow  # 36 s, W&B's start mostly
+@needs_gl
+def test_capture_video_draws_each_run_into_the_run_directory_tensorboard_and_wandb(drawn_envs, tmp_path, monkeypatch):
+    import wandb
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    out = tmp_path / "run"
+    argv = ["--env", "drawn_point_mass", *TINY, "--total-timesteps", "1024", "--num-seeds", "2", "--track", "wandb"]
+    assert train.main([*argv, "--capture-video", "--capture-video-every", "512", "--out", str(out)]) == 0
+    wandb.teardown()
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    videos = {(row["seed"], row["env_steps"]): row["video"] for row in rows if "video" in row}
+    # Two runs, so one folder each; a video after 512 steps per run and one at the end.
+    assert videos == {(seed, steps): f"videos/seed_{seed}/step_{steps:09d}.mp4" for seed in (1, 2) for steps in (512, 1024)}
+    for path in videos.values():
+        frames = read_frames(out / path)
+        # Two episodes of at most 50 steps, each drawn from its reset on.
+        assert 2 * 2 <= len(frames) <= 2 * 51 and frames[0].shape == (video.HEIGHT, video.WIDTH, 3)
+        assert np.ptp(frames[0]) > 50
+    events = EventAccumulator(str(out / "tensorboard" / "seed_2"), size_guidance={"images": 0})
+    events.Reload()
+    assert [image.step for image in events.Images("video/episodes")] == [512, 1024]
+    assert events.Images("video/episodes")[0].encoded_image_string[:6] == b"GIF89a"
+    for path in sorted((out / "wandb").rglob("*.wandb")):
+        logged = [step for step in read_wandb_run(path)["history"] if "video/episodes/_type" in step]
+        assert [step["_step"] for step in logged] == [512, 1024]
+        assert {step["video/episodes/_type"] for step in logged} == {"video-file"}
+        assert len(list(path.parent.rglob("files/media/videos/**/*.mp4"))) == 2
+
+
+def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = tmp_path / "host"
+    argv = ["--env", "drawn_host_point_mass", *TINY, "--total-timesteps", "640", "--log-every", "5"]
+    assert train.main([*argv, "--capture-video", "--capture-video-episodes", "3", "--out", str(out)]) == 0
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    # 5 updates of 128 steps, a video every quarter of the run (every update) and at the end.
+    assert [row["update"] for row in rows if "video" in row] == [1, 2, 3, 4, 5]
+    frames = read_frames(out / "videos" / "step_000000640.mp4")
+    assert len(frames) == 3 * (HOST_SPEC.max_episode_steps + 1)  # three episodes truncated after 5 steps, and their resets
+    bars = [int((frame[0, :, 0] > 100).sum()) for frame in frames]
+    assert len(set(bars)) > 3  # the point mass moves
+    events = EventAccumulator(str(out / "tensorboard" / "seed_1"), size_guidance={"images": 0})
+    events.Reload()
+    assert [image.step for image in events.Images("video/episodes")] == [128, 256, 384, 512, 640]
+
+
+def test_video_time_is_kept_out_of_training_time_and_steps_per_second(drawn_envs, tmp_path, monkeypatch):
+    written = video.write_mp4
+
+    def slow_write(path, episodes):
+        written(path, episodes)
+        time.sleep(1.0)
+
+    monkeypatch.setattr(video, "write_mp4", slow_write)
+    out = tmp_path / "slow"
+    argv = ["--env", "drawn_host_point_mass", *TINY, "--total-timesteps", "512", "--capture-video-every", "128"]
+    assert train.main([*argv, "--capture-video", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["video_seconds"] >= 4.0  # four videos, one after each update
+    assert summary["train_seconds"] < 3.0  # four tiny updates; the videos' four seconds would show here
+    assert summary["sps"] == pytest.approx(512 / summary["train_seconds"])
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--env", "gym/Pendulum-v1", "--capture-video"], "error: --capture-video: gym/Pendulum-v1 cannot be drawn; videos are"),
+        (["--env", "point_mass", "--capture-video"], "error: --capture-video: point_mass cannot be drawn; videos are"),
+        (["--capture-video", "--capture-video-every", "0"], "error: --capture-video-every and --capture-video-episodes must be"),
+        (["--capture-video-every", "1000"], "error: --capture-video-every and --capture-video-episodes apply with"),
+    ],
+)  # fmt: skip
+def test_videos_that_cannot_be_made_are_refused_before_any_work(drawn_envs, tmp_path, capsys, monkeypatch, flags, message):
+    monkeypatch.setattr(runner, "compile_runs", lambda *args: pytest.fail("training began"))
+    started = time.perf_counter()
+    # Without --quiet: the refusal comes before the progress display's first line.
+    assert train.main([*TINY[:-1], *flags, "--out", str(tmp_path / "out")]) == 2
+    assert time.perf_counter() - started < 10
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(message)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_gymnasium_task_draws_itself():
+    pytest.importorskip("pygame")  # Gymnasium's classic control tasks draw with it
+    env = envs.make_env("gymnasium/Pendulum-v1")
+    still = lambda obs, key, deterministic: jnp.zeros(1)
+    (episode,) = video.record(env, still, 1, jax.random.PRNGKey(0), deterministic=True)
+    assert episode.steps == 200 and episode.fps == 30.0  # Pendulum's time limit, and Gymnasium's frame rate for it
+    assert episode.frames[0].shape == (500, 500, 3) and episode.frames[0].dtype == np.uint8
+    assert not np.array_equal(episode.frames[0], episode.frames[-1])  # the pendulum swung
+
+
+@needs_gl
+def test_a_deepmind_control_task_draws_itself_with_envpool():
+    pytest.importorskip("envpool")
+    env = envs.make_env("dmc/cartpole-swingup")
+    simulator = env.make_drawn(0, video.WIDTH, video.HEIGHT)
+    try:
+        simulator.reset()
+        frames = [simulator.frame()]
+        for _ in range(30):
+            obs, reward, terminated, truncated = simulator.step(np.ones(1))
+            frames.append(simulator.frame())
+    finally:
+        simulator.close()
+    assert obs.shape == (env.spec.observation_size,) and not (terminated or truncated)
+    assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3) and frames[0].mean() > 30
+    assert not np.array_equal(frames[0], frames[-1])  # the cart moved
+    assert simulator.fps == 100.0  # dm_control's cartpole steps 10 ms
