@@ -141,7 +141,8 @@ def build_parser() -> ArgumentParser:
     parser.add_argument("run_dir", type=Path, help="a directory written by rpo_jax.train")
     parser.add_argument("--episodes", type=int, default=10, help="episodes to average over (default 10)")
     parser.add_argument("--deterministic", action="store_true", help="act with the policy's location, not a sample")
-    parser.add_argument("--run", type=int, default=0, help="which of the directory's runs (index in config.json)")
+    help_run = "which of the directory's runs (index in config.json); default: the first, or a population's best member"
+    parser.add_argument("--run", type=int, help=help_run)
     parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
     parser.add_argument("--video", type=Path, metavar="OUT.mp4", help="also render one episode to this file")
     return parser
@@ -160,6 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not 0 <= args.seed < 2**32:
             raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
         saved = run_dir.read_config()
+        args.run = run_dir.default_run() if args.run is None else args.run
         if not 0 <= args.run < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {args.run}")
         import jax

@@ -69,8 +69,8 @@ SAMPLERS = {
 OPSET = 17
 
 
-def policy_arrays(run_dir: Path, run: int = 0) -> dict[str, np.ndarray]:
-    """The arrays of the `.npz` for run `run` of `run_dir`."""
+def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray]:
+    """The arrays of the `.npz` for run `run` of `run_dir` (None: as `rpo_jax.load_policy`'s)."""
     from rpo_jax.policy import load_run
 
     config, spec, actor_params, stats = load_run(run_dir, run)
@@ -164,7 +164,8 @@ def activation_nodes(activation: str, x: str, out: str) -> list[Any]:
 def build_parser() -> ArgumentParser:
     parser = ArgumentParser(prog="python -m rpo_jax.export", description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a directory written by rpo_jax.train")
-    parser.add_argument("--run", type=int, default=0, help="which of the directory's runs (index in config.json)")
+    help_run = "which of the directory's runs (index in config.json); default: the first, or a population's best member"
+    parser.add_argument("--run", type=int, help=help_run)
     parser.add_argument("--onnx", type=Path, metavar="OUT.onnx", help="write the policy as an ONNX model (the onnx extra)")
     parser.add_argument("--npz", type=Path, metavar="OUT.npz", help="write the policy's arrays for NumPy")
     return parser
@@ -179,6 +180,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         outputs = {"--onnx": args.onnx, "--npz": args.npz}
         check_outputs({flag: path for flag, path in outputs.items() if path is not None})
         runs = len(run_dir.read_config()["runs"])
+        args.run = run_dir.default_run() if args.run is None else args.run
         if not 0 <= args.run < runs:
             raise UsageError(f"--run must be in [0, {runs}), got {args.run}")
         arrays = policy_arrays(args.run_dir, args.run)

@@ -145,14 +145,15 @@ def explore(hparams: ppo.Hyperparams, moved: jax.Array, key: jax.Array, rule: Ru
 
 def step(state: ppo.TrainState, scores: jax.Array, key: jax.Array, rule: Rule, members: int) -> tuple[ppo.TrainState, jax.Array]:
     """One exploit/explore step of the first `members` of `state` [P, ...] (the others, padding,
-    are left alone) scored by `scores` [P]. Returns the state and donors [members]. The optimiser's
+    are left alone) scored by `scores` [members or more]. Returns the state and donors [members]. The optimiser's
     learning rate of a member that moved is its donor's scaled by the change of `lr`, so that a
     schedule's progress (linear, adaptive) carries over and the new `lr` takes effect."""
     donor_key, explore_key = jax.random.split(key)
     donors = choose_donors(scores[:members], donor_key, rule.quantile)
-    padded = jnp.concatenate([donors, jnp.arange(members, scores.shape[0], dtype=jnp.int32)])
+    total = state.update.shape[0]
+    padded = jnp.concatenate([donors, jnp.arange(members, total, dtype=jnp.int32)])
     copied = exploit(state, padded)
-    moved = padded != jnp.arange(scores.shape[0])
+    moved = padded != jnp.arange(total)
     hparams = explore(copied.hparams, moved, explore_key, rule)
     ratio = jnp.where(copied.hparams.lr > 0, hparams.lr / copied.hparams.lr, 1.0)
     opt_state = ppo.set_learning_rate(copied.opt_state, copied.opt_state.hyperparams["learning_rate"] * ratio)

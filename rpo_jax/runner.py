@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from rpo_jax import devices, envs, ppo
+from rpo_jax import devices, envs, population, ppo
 from rpo_jax.acting import Policy, first_episode_returns
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
@@ -109,6 +109,7 @@ class Compiled:
     # (real runs' evaluation_inputs, keys) -> each run's mean deterministic return; None: evaluation off
     run_eval: Callable[[dict[str, Any], jax.Array], jax.Array] | None = None
     eval_keys: jax.Array | None = None
+    evolve: population.StepProgram | None = None  # population-based training's step; None: off
 
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
@@ -176,6 +177,10 @@ def train_locked(
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
     # the sinks from the rows kept, so nothing is logged twice.
     kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"], cut=primary)
+    if compiled.evolve:  # a resumed population: its lineage and hyperparameters as they were at the checkpoint
+        population.update_hyperparameters(placement, compiled.state, runs)
+        if primary:
+            run_dir.cut_lineage(compiled.record["update"])
     for sink in sinks:
         sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
@@ -188,6 +193,8 @@ def train_locked(
         compiled.trainer.close()
     params = placement.real_runs({"params": state.params, "obs_stats": compiled.trainer.observation_statistics(state)})
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
+    if plan.pbt:
+        summary["best_member"] = population.best_member(runs)
     if primary:
         run_dir.write_params(serialization.msgpack_serialize(serialization.to_state_dict(params)))
         run_dir.write_summary(summary)
@@ -227,7 +234,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
     trainer = placement.make_trainer(config, env)
-    chunk = chunk_length(config.num_updates, at_most=plan.eval_updates)
+    chunk = chunk_length(config.num_updates, at_most=min(filter(None, (plan.eval_updates, plan.pbt_updates)), default=None))
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
@@ -251,7 +258,8 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     run_eval = compile_evaluation(plan, env, trainer) if plan.eval_every else None
     # Evaluation keys of their own, so that evaluating leaves training's random numbers alone.
     eval_keys = jax.vmap(lambda key: jax.random.fold_in(key, EVAL_STREAM))(keys)
-    return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys)
+    evolve = population.step_program(plan, placement, state) if plan.pbt else None
+    return Compiled(trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys, evolve)
 
 
 EVAL_STREAM = 0x5EED
@@ -363,8 +371,8 @@ def train_chunks(
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
-            state, (metrics, diagnostics) = compiled.run_chunk(state)
-            metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
+            state, placed = compiled.run_chunk(state)
+            metrics, diagnostics = compiled.placement.real_runs(placed)
             nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
             clock.lap("train_seconds")
             updates_done = first_update + chunk
@@ -383,6 +391,9 @@ def train_chunks(
             record_returns(rows, logged_returns)
             for sink in sinks:
                 sink.write(rows)
+            if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
+                scored = (placed[0].episode_return, logged_returns["eval_return"])
+                state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 clock.lap("train_seconds")
                 save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)

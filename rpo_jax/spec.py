@@ -46,6 +46,27 @@ class RunSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class Pbt:
+    """Population-based training: the runs of one command as a population whose worst members copy
+    better ones and explore their hyperparameters between chunks (`rpo_jax.pbt`)."""
+
+    pbt: bool = False
+    """train --population runs (seeds seed, seed + 1, ...) as one population (population-based training)"""
+    population: int = 8
+    """members of the population, trained together in one program, with --pbt"""
+    pbt_every: int | None = None
+    """env steps per member between exploit/explore steps (in whole chunks of updates); None: a tenth of the run"""
+    pbt_fields: str = "rpo_alpha=0.001:1.0,lr=1e-5:1e-3"
+    """NAME=LOW:HIGH,... the hyperparameters explored and their ranges; each member starts from values drawn within
+    them (log-uniform for rpo_alpha and lr); NAME in rpo_alpha, ent_coef, lr, drac_coef"""
+    pbt_quantile: float = 0.25
+    """the bottom fraction of members (by recent training return, or the last evaluation's with --eval-every) that copy
+    members of the top fraction, in (0, 0.5]"""
+    pbt_explore: Literal["perturb", "resample"] = "perturb"
+    """perturb: multiply each explored value by 0.8 or 1.25; resample: draw it again within its range; clipped to it"""
+
+
+@dataclasses.dataclass(frozen=True)
 class Processes:
     """Where the runs train: the devices of each process, the processes and the compile cache."""
 
