@@ -4,6 +4,7 @@ environments train, the best member is the default policy, and bad flags are one
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -18,7 +19,7 @@ from point_mass import PointMass
 from test_devices import ROOT, params_of
 from test_host import SPEC, host_point_mass
 
-from rpo_jax import envs, export, policy, train
+from rpo_jax import envs, experiment, export, policy, train
 from rpo_jax.rundir import PARAMS_FILE, SUMMARY_FILE, RunDir
 
 NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
@@ -152,3 +153,15 @@ def test_bad_population_flags_are_one_line_and_exit_2(tmp_path, capsys, flags, m
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
     assert not out.exists()
+
+
+def test_the_pbt_alpha_experiment_trains_a_population_beside_fixed_alphas(tmp_path):
+    out = tmp_path / "pbt-alpha"
+    flags = ["--envs", "test/point_mass", "--jobs", "rpo-0.01", "pbt", *SIZE, "--total-timesteps", str(8 * BATCH)]
+    assert experiment.main(["pbt-alpha", *flags, "--num-seeds", "2", "--quiet", "--out", str(out)]) == 0
+    with open(out / "results.csv", newline="") as file:
+        runs = {(row["variant"], row["seed"]) for row in csv.DictReader(file)}
+    assert sorted(seed for variant, seed in runs if variant == "rpo-0.01") == ["1", "2"]
+    assert len([seed for variant, seed in runs if variant == "pbt"]) == 8  # the population's members
+    population = RunDir(out / "runs" / "test_point_mass" / "pbt")
+    assert population.read_lineage() and population.read_summary()["best_member"] in range(8)
