@@ -3,7 +3,8 @@ exploit/explore step falls due, the members' scores, `rpo_jax.pbt.step` on the p
 the devices, split as the runs are), and its lineage rows in pbt.jsonl.
 
 The score of a member is its last evaluation's return where the run evaluates (--eval-every) and
-has evaluated, else its mean training return over the chunk that just ended. The step's key comes
+has evaluated, else its mean training return over the chunk that just ended: R numbers from the
+host, where the chunk's metrics are anyway. The step's key comes
 from the run's seed and the update count, so that a resumed run steps as the uninterrupted one.
 """
 
@@ -13,31 +14,33 @@ from typing import Any, Callable
 
 import jax
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from rpo_jax import pbt, ppo
 from rpo_jax.devices import Placement, is_primary
 from rpo_jax.plan import RunPlan
 
-# (placed state, returns [..., P, updates], update) -> (placed state, donors [members])
+# (placed state, scores [R], update) -> (placed state, donors [R])
 StepProgram = Callable[[ppo.TrainState, Any, Any], tuple[ppo.TrainState, jax.Array]]
 
 
 def step_program(plan: RunPlan, placement: Placement, state: ppo.TrainState) -> StepProgram:
-    """The jitted step of the population of `plan` (with --pbt) placed as `state`: its output lies
-    on the devices as its input did, so the compiled chunk takes it as it is."""
+    """The compiled step of the population of `plan` (with --pbt) placed as `state`: its output
+    lies on the devices as its input did, so the compiled chunk takes it as it is."""
     rule, members, seed = plan.pbt_rule, plan.num_seeds, plan.seed
 
-    def run(state: ppo.TrainState, returns: jax.Array, update: jax.Array) -> tuple[ppo.TrainState, jax.Array]:
+    def run(state: ppo.TrainState, scores: jax.Array, update: jax.Array) -> tuple[ppo.TrainState, jax.Array]:
         key = pbt.step_key(seed, update)
-        # Data-parallel states and metrics are stacked [D, R, ...], the same on every device.
-        scores = returns.reshape(-1, *returns.shape[-2:])[0].mean(-1)
-        if placement.kind != "envs":
+        if placement.kind != "envs":  # data-parallel states are stacked [D, R, ...], the same on every device
             return pbt.step(state, scores, key, rule, members)
         state, donors = jax.vmap(lambda own: pbt.step(own, scores, key, rule, members))(state)
         return state, donors[0]
 
     shardings = jax.tree.map(lambda leaf: leaf.sharding, state)
-    return jax.jit(run, out_shardings=(shardings, None))
+    # The donors whole on every device: with several processes, each reads them all.
+    whole = None if placement.mesh is None else NamedSharding(placement.mesh, PartitionSpec())
+    program = jax.jit(run, out_shardings=(shardings, whole))
+    return program.lower(state, jax.ShapeDtypeStruct((members,), np.float32), jax.ShapeDtypeStruct((), np.int32)).compile()
 
 
 def step_due(plan: RunPlan, first_update: int, chunk: int) -> bool:
@@ -48,15 +51,15 @@ def step_due(plan: RunPlan, first_update: int, chunk: int) -> bool:
 
 
 def evolve(
-    plan: RunPlan, placement: Placement, program: StepProgram, state: ppo.TrainState, placed_returns: jax.Array,
+    plan: RunPlan, placement: Placement, program: StepProgram, state: ppo.TrainState, returns: np.ndarray,
     eval_returns: list[list[float]], runs: list[dict[str, Any]], update: int,
 ) -> ppo.TrainState:  # fmt: skip
-    """The state after the step that follows `update`, scored by the chunk's `placed_returns`
-    [..., P, chunk] or each run's logged `eval_returns`; writes the lineage of the members that
-    copied (process 0) and gives `runs` their hyperparameters from now on."""
-    if plan.eval_every and all(eval_returns):
-        placed_returns = np.asarray([[returns[-1]] for returns in eval_returns], np.float32)
-    state, donors = program(state, placed_returns, np.int32(update))
+    """The state after the step that follows `update`, scored by the chunk's training `returns`
+    [R, chunk] or each run's logged `eval_returns`; writes the lineage of the members that copied
+    (process 0) and gives `runs` their hyperparameters from now on."""
+    evaluated = plan.eval_every and all(eval_returns)
+    scores = [runs_returns[-1] for runs_returns in eval_returns] if evaluated else returns.mean(-1)
+    state, donors = program(state, np.asarray(scores, np.float32), np.int32(update))
     donors = np.asarray(jax.device_get(donors))
     before = [dict(run["hparams"]) for run in runs]
     update_hyperparameters(placement, state, runs)

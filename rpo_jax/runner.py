@@ -371,8 +371,8 @@ def train_chunks(
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         for first_update in range(record["update"], config.num_updates, chunk):
-            state, placed = compiled.run_chunk(state)
-            metrics, diagnostics = compiled.placement.real_runs(placed)
+            state, (metrics, diagnostics) = compiled.run_chunk(state)
+            metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
             nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
             clock.lap("train_seconds")
             updates_done = first_update + chunk
@@ -392,7 +392,7 @@ def train_chunks(
             for sink in sinks:
                 sink.write(rows)
             if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
-                scored = (placed[0].episode_return, logged_returns["eval_return"])
+                scored = (metrics.episode_return, logged_returns["eval_return"])
                 state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 clock.lap("train_seconds")

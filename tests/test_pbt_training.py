@@ -69,12 +69,14 @@ def test_the_lineage_and_the_rows_follow_the_members_hyperparameters(finished):
     assert config["plan"]["pbt"]["population"] == 4 and len({run["hparams"]["lr"] for run in config["runs"]}) == 4
 
 
-def test_a_killed_and_resumed_population_ends_as_the_uninterrupted_one(finished, tmp_path):
+def test_a_killed_and_resumed_population_ends_as_the_uninterrupted_one(finished, tmp_path, capsys):
     out = tmp_path / "killed"
     shutil.copytree(finished, out)  # as if killed after its checkpoint at update 14, with rows and lineage past it
     (out / SUMMARY_FILE).unlink()
     (out / PARAMS_FILE).unlink()
-    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert train.main(["--resume", str(out), "--population", "5"]) == 2
+    assert f"--resume {out}: the run was made with --population 4, not 5" in capsys.readouterr().err
+    assert train.main(["--resume", str(out), "--pbt", "--population", "4", "--quiet"]) == 0
     assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
     assert without_sps(out) == without_sps(finished)
     assert RunDir(out).read_lineage() == RunDir(finished).read_lineage()  # the step at 16 drawn again, the same
