@@ -90,6 +90,9 @@ class Job:
         return f"{self.name} {self.sweep[0]}={hparams[self.sweep[0]]:g}"
 
 
+POPULATION_FIELDS = ("population", "pbt_fields")
+
+
 @dataclasses.dataclass(frozen=True)
 class Experiment:
     jobs: tuple[Job, ...]
@@ -119,7 +122,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     "pbt-alpha": Experiment(
         (PPO, Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)), Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)),
          Job("pbt", "rpo", population=8, pbt_fields="rpo_alpha=0.001:1.0,lr=1e-5:1e-3")),
-        "pbt-alpha", default_timesteps=1_000_000,
+        "pbt-alpha",
     ),  # fmt: skip
     "truncation": Experiment(
         tuple(
@@ -224,7 +227,8 @@ def resolve(args: ExperimentArgs) -> dict:
         **({"eval_every": args.run.eval_every, "eval_episodes": args.run.eval_episodes} if args.run.eval_every else {}),
         **{name: values[name] for name, default in RECORDED_WHERE_GIVEN.items() if values[name] != default},
         "config": config_overrides(args, jobs),
-        "jobs": [dataclasses.asdict(job) for job in jobs],
+        # A job's population fields where it has one: experiments recorded before them continue.
+        "jobs": [{k: v for k, v in dataclasses.asdict(job).items() if v or k not in POPULATION_FIELDS} for job in jobs],
     }
     return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
 
