@@ -71,8 +71,8 @@ SAMPLERS = {
 OPSET = 17
 
 
-def policy_arrays(run_dir: Path, run: int = 0) -> dict[str, np.ndarray]:
-    """The arrays of the `.npz` for run `run` of `run_dir`."""
+def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray]:
+    """The arrays of the `.npz` for run `run` of `run_dir` (None: as `rpo_jax.load_policy`'s)."""
     from rpo_jax.policy import load_run
 
     config, spec, actor_params, stats = load_run(run_dir, run)
@@ -182,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.trained.record()
         outputs = {"--onnx": args.onnx, "--npz": args.npz}
         check_outputs({flag: path for flag, path in outputs.items() if path is not None})
-        arrays = policy_arrays(args.trained.run_dir, args.trained.run)
+        arrays = policy_arrays(args.trained.run_dir, args.trained.index())
         contents = {}
         if args.onnx:
             contents[args.onnx] = onnx_bytes(arrays)

@@ -20,13 +20,13 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Sequence
 
-from rpo_jax import envs
+from rpo_jax import envs, pbt
 from rpo_jax.config import SWEEPABLE, Config, check_applies
 from rpo_jax.devices import Placement, is_primary, make_placement
 from rpo_jax.envs import registry
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import RunDir
-from rpo_jax.spec import Processes, RunSpec
+from rpo_jax.spec import Pbt, Processes, RunSpec
 
 # Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
 # steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
@@ -42,12 +42,12 @@ SEED_LIMIT = 2**32
 # evaluation during training existed lack the eval fields and read back with evaluation off.
 PLAN_FIELDS = (
     "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
-    "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes",
+    "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
 )  # fmt: skip
 # What a resumed run of a config.json written before a field existed reads for it.
 PLAN_DEFAULTS = {
     "eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False,
-    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2,
+    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2, "pbt": None,
 }  # fmt: skip
 # The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
 PLAN_TYPES: dict[str, tuple[type, ...]] = {
@@ -55,10 +55,11 @@ PLAN_TYPES: dict[str, tuple[type, ...]] = {
     "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
     "devices": (int, type(None)), "shard_envs": (bool,),
     "capture_video": (bool,), "capture_video_every": (int, type(None)), "capture_video_episodes": (int,),
+    "pbt": (dict, type(None)),
 }  # fmt: skip
 # The plan's fields that decide the numbers a run trains to, besides every Config field: each
 # checkpoint records them (`training_record`), and a resume whose config.json differs is refused.
-TRAINING_FIELDS = ("env", "seed", "num_seeds", "sweep")
+TRAINING_FIELDS = ("env", "seed", "num_seeds", "sweep", "pbt")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +82,7 @@ class RunPlan:
     capture_video: bool = False  # videos of the deterministic policy during training (rpo_jax.video)
     capture_video_every: int | None = None  # env steps per run between videos; None: VIDEOS_PER_RUN
     capture_video_episodes: int = 2
+    pbt: dict[str, Any] | None = None  # population-based training: the `Pbt` flags, pbt_every in env steps; None: off
     resuming: bool = False
     allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
     # Built once with the plan, from the fields above: the sweep's points and the runs' placement.
@@ -105,25 +107,44 @@ class RunPlan:
         return max(1, every // self.config.batch_size)
 
     @property
+    def pbt_rule(self) -> pbt.Rule | None:
+        """How the population evolves; None without population-based training."""
+        if self.pbt is None:
+            return None
+        fields = pbt.parse_fields(self.pbt["pbt_fields"], self.config.algo)
+        return pbt.Rule(fields, self.pbt["pbt_quantile"], self.pbt["pbt_explore"])
+
+    @property
+    def pbt_updates(self) -> int | None:
+        """Updates between exploit/explore steps; None without population-based training."""
+        return max(1, self.pbt["pbt_every"] // self.config.batch_size) if self.pbt else None
+
+    @property
     def run_dir(self) -> RunDir:
         return RunDir(self.out)
 
 
 def new_plan(
     env: str, config: Config, run: RunSpec, processes: Processes | None = None, preset: str | None = None,
-    grid: Sequence[dict[str, float]] | None = None,
+    grid: Sequence[dict[str, float]] | None = None, population: Pbt | None = None,
 ) -> RunPlan:  # fmt: skip
     """A plan for the new run directory `run.out` on `processes`' devices (None: all of this
     process's), checked before anything is written. `grid`: what `check_new` returned for the
     same arguments, where the caller checked them first (an experiment, all its runs), so that
-    they are checked once."""
+    they are checked once. With `population` (its --pbt on), the runs are a population of that
+    many seeds."""
     processes = processes or Processes()
-    grid = check_new(env, config, run) if grid is None else grid
+    grid = check_new(env, config, run) if grid is None else grid  # the config checked before its sizes are used
+    run_steps = config.num_updates * config.batch_size
+    evolution = pbt_record(population, run, run_steps)
+    if evolution:
+        run = dataclasses.replace(run, num_seeds=evolution["population"])
+        check_seeds(run.seed, run.num_seeds)
+        check_pbt(evolution, config)
     if is_primary():  # the one process that writes it (the others may find it begun)
         if not RunDir(run.out).is_new():
             raise UsageError(f"--out {run.out} already exists and is not an empty directory; choose a new one or --resume it")
         check_writable(run.out)
-    run_steps = config.num_updates * config.batch_size
     return RunPlan(
         out=run.out, env=env, preset=preset, seed=run.seed, num_seeds=run.num_seeds, sweep=tuple(run.sweep), config=config,
         log_every=run.log_every or max(1, config.num_updates // 100),
@@ -131,10 +152,36 @@ def new_plan(
         eval_every=run.eval_every, eval_episodes=run.eval_episodes, devices=processes.devices,
         capture_video=run.capture_video, capture_video_every=run.capture_video_every,
         capture_video_episodes=run.capture_video_episodes,
-        shard_envs=processes.shard_envs, grid=tuple(grid),
+        shard_envs=processes.shard_envs, pbt=evolution, grid=tuple(grid),
         # A bad layout is refused here, before anything is written.
         placement=make_placement(processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config),
     )  # fmt: skip
+
+
+def pbt_record(population: Pbt | None, run: RunSpec, run_steps: int) -> dict[str, Any] | None:
+    """What config.json records of population-based training (None: off): the `Pbt` flags, with
+    --pbt-every's default resolved. The population is the command's runs: no seeds or sweep besides."""
+    if population is None or not population.pbt:
+        return None
+    if run.num_seeds != 1 or run.sweep:
+        raise UsageError("--pbt trains --population seeds as one population; give no --num-seeds or --sweep with it")
+    every = run_steps // 10 if population.pbt_every is None else population.pbt_every
+    return {**dataclasses.asdict(population), "pbt_every": every}
+
+
+def check_pbt(record: dict[str, Any], config: Config) -> None:
+    """Refuses a bad population-based training record (`pbt_record`'s, or config.json's)."""
+    if set(record) != {field.name for field in dataclasses.fields(Pbt)}:
+        raise UsageError(f"pbt must hold the fields of --pbt, got {sorted(record)}")
+    if not isinstance(record["population"], int) or record["population"] < 2:
+        raise UsageError(f"--population must be an integer >= 2, got {record['population']!r}")
+    if not isinstance(record["pbt_every"], int) or record["pbt_every"] < 1:
+        raise UsageError(f"--pbt-every must be >= 1 env step per member, got {record['pbt_every']!r}")
+    if not isinstance(record["pbt_quantile"], float) or not 0 < record["pbt_quantile"] <= 0.5:
+        raise UsageError(f"--pbt-quantile must be in (0, 0.5], got {record['pbt_quantile']!r}")
+    if record["pbt_explore"] not in pbt.EXPLORE_RULES:
+        raise UsageError(f"--pbt-explore must be one of {', '.join(pbt.EXPLORE_RULES)}, got {record['pbt_explore']!r}")
+    pbt.parse_fields(str(record["pbt_fields"]), config.algo)
 
 
 def default_checkpoint_every(run_steps: int) -> int:
@@ -225,6 +272,8 @@ def resumed_plan(out: Path) -> RunPlan:
     registry.check_import_outside(plan["env"], out)
     try:
         grid = check_saved_plan(plan, config)
+        if plan["pbt"] is not None:
+            check_pbt(plan["pbt"], config)
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
     placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config)
@@ -309,6 +358,10 @@ def describe_runs(plan: RunPlan, grid: list[dict[str, float]]) -> list[dict[str,
     """Every run: index, seed and hyperparameters. Point-major: the seeds of grid point i are
     runs[i * num_seeds : (i + 1) * num_seeds]."""
     defaults = plan.config.hyperparameters()
+    rule = plan.pbt_rule
+    if rule:  # each member starts from values of its own within the explored ranges
+        grid = pbt.initial_hyperparameters(plan.seed, plan.num_seeds, rule)
+        return [{"run": index, "seed": seed, "hparams": {**defaults, **grid[index]}} for index, seed in enumerate(plan.seeds)]
     return [
         {"run": index, "seed": seed, "hparams": {**defaults, **point}}
         for index, (point, seed) in enumerate(itertools.product(grid, plan.seeds))

@@ -20,10 +20,11 @@ from rpo_jax.errors import UsageError
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 
-def load_policy(run_dir: str | Path, run: int = 0) -> ActFn:
+def load_policy(run_dir: str | Path, run: int | None = None) -> ActFn:
     """Returns a jitted `policy(obs, key=None, deterministic=True) -> action` (see `acting.Policy`):
     the policy's location by default, a sample with a key and `deterministic=False`. `run`
-    indexes the runs (seeds x sweep points) trained together, as listed in config.json."""
+    indexes the runs (seeds x sweep points) trained together, as listed in config.json; None: the
+    first, or a population's best member (`RunDir.default_run`)."""
     config, spec, actor_params, stats = load_run(run_dir, run)
     return jitted_policy(config, spec["action_size"], spec["action_low"], spec["action_high"], actor_params, stats)
 
@@ -62,10 +63,11 @@ def params_bytes(params: Any, obs_stats: envs.RunningMeanStd) -> bytes:
     return serialization.msgpack_serialize(serialization.to_state_dict({"params": params, "obs_stats": obs_stats}))
 
 
-def load_run(run_dir: str | Path, run: int = 0) -> tuple[Config, dict[str, Any], Any, envs.RunningMeanStd]:
+def load_run(run_dir: str | Path, run: int | None = None) -> tuple[Config, dict[str, Any], Any, envs.RunningMeanStd]:
     """One run's config, environment spec (as config.json records it), actor parameters and
-    observation statistics."""
+    observation statistics; `run` as `load_policy`'s."""
     directory = RunDir(Path(run_dir))
+    run = directory.default_run() if run is None else run
     saved_run = directory.read_config()
     if not 0 <= run < len(saved_run["runs"]):
         raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")

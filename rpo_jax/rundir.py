@@ -4,6 +4,7 @@
 |---|---|
 | `config.json` | what defines the runs (plan, config, seeds, sweep, every run), the env's spec, versions |
 | `metrics.jsonl` | one JSON object per logged update and run |
+| `pbt.jsonl` | population-based training's lineage: one JSON object per member that copied another |
 | `summary.json` | final returns and timings; written last, so its presence marks a finished run |
 | `params.msgpack` | actor and critic parameters and observation statistics, one slice per run |
 | `tensorboard/` | TensorBoard events, one directory per run |
@@ -34,6 +35,7 @@ TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
 LOCK_FILE = ".lock"
 WANDB_DIR = "wandb"  # W&B makes it in the run directory (`tracking.WandbSink`) unless WANDB_DIR is set
+LINEAGE_FILE = "pbt.jsonl"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +92,12 @@ class RunDir:
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         write_json(self.path / SUMMARY_FILE, summary)
+
+    def default_run(self) -> int:
+        """The run a policy is taken from when none is named: a population's best member
+        (summary.json's best_member), else the first run."""
+        best = self.read_summary().get("best_member") if self.is_finished() else None
+        return best if isinstance(best, int) else 0
 
     def read_summary(self) -> dict[str, Any]:
         return json.loads((self.path / SUMMARY_FILE).read_text())
@@ -149,6 +157,22 @@ class RunDir:
             with open(self.path / METRICS_FILE, "a+b") as metrics:
                 metrics.truncate(size)
         return [json.loads(line) for line in kept.splitlines()]
+
+    def append_lineage(self, rows: list[dict[str, Any]]) -> None:
+        with open(self.path / LINEAGE_FILE, "ab", buffering=0) as lineage:
+            write_rows(lineage, rows)
+
+    def read_lineage(self) -> list[dict[str, Any]]:
+        """pbt.jsonl's rows; none where the run has no population (or no step yet)."""
+        path = self.path / LINEAGE_FILE
+        return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+
+    def cut_lineage(self, update: int) -> None:
+        """Drops pbt.jsonl's rows after `update` (a resumed run's checkpoint): the resumed run
+        writes them again."""
+        kept = [row for row in self.read_lineage() if row["update"] <= update]
+        if (self.path / LINEAGE_FILE).is_file():
+            write_bytes(self.path / LINEAGE_FILE, "".join(json.dumps(row) + "\n" for row in kept).encode())
 
     def append_metrics(self) -> IO[bytes]:
         # Unbuffered, so that a failed write (a full disk) can be cut back to whole rows.

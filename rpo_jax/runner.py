@@ -25,11 +25,9 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Protocol, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax import devices, envs, ppo, video
-from rpo_jax.acting import Policy, first_episode_returns
+from rpo_jax import devices, envs, evaluation, population, ppo, video
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
@@ -111,6 +109,7 @@ class Compiled:
     eval_keys: jax.Array | None = None
     capture: video.Capture | None = None  # None: no videos during training
     video_keys: jax.Array | None = None
+    evolve: population.StepProgram | None = None  # population-based training's step; None: off
 
 
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
@@ -180,6 +179,10 @@ def train_locked(
     # Back to the checkpoint: drop what the interrupted process logged after it, and rebuild
     # the sinks from the rows kept, so nothing is logged twice.
     kept_rows = run_dir.cut_metrics(compiled.record["metrics_bytes"], cut=primary)
+    if compiled.evolve:  # a resumed population: its lineage and hyperparameters as they were at the checkpoint
+        population.update_hyperparameters(placement, compiled.state, runs)
+        if primary:
+            run_dir.cut_lineage(compiled.record["update"])
     for sink in sinks:
         sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
@@ -192,6 +195,8 @@ def train_locked(
         compiled.trainer.close()
     params, obs_stats = placement.real_runs((state.params, compiled.trainer.observation_statistics(state)))
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
+    if plan.pbt:
+        summary["best_member"] = population.best_member(runs)
     if primary:
         run_dir.write_params(params_bytes(params, obs_stats))
         run_dir.write_summary(summary)
@@ -231,7 +236,9 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     """The trainer, the initial or restored state of every run placed on the devices, and the compiled chunk."""
     config = plan.config
     trainer = placement.make_trainer(config, env)
-    chunk = chunk_length(config.num_updates, at_most=min(filter(None, (plan.eval_updates, plan.video_updates)), default=None))
+    chunk = chunk_length(
+        config.num_updates, at_most=min(filter(None, (plan.eval_updates, plan.video_updates, plan.pbt_updates)), default=None)
+    )
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
     hparams = ppo.Hyperparams(
         **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
@@ -252,58 +259,19 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
                 # The simulators died with the interrupted process and no checkpoint holds them.
                 state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
-    run_eval = compile_evaluation(plan, env, trainer) if plan.eval_every else None
+    run_eval = evaluation.compile_evaluation(plan, env, trainer) if plan.eval_every else None
     labels = [run_label(run, list(plan.grid[0])) for run in runs]
     capture = None
     if plan.capture_video:
-        capture = video.Capture(plan.out, env, run_policy(trainer, env), plan.capture_video_episodes, labels, is_primary())
+        policy = evaluation.run_policy(trainer, env)
+        capture = video.Capture(plan.out, env, policy, plan.capture_video_episodes, labels, is_primary())
     # Evaluation and video keys of their own, so that they leave training's random numbers alone.
-    eval_keys, video_keys = (jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, stream) for stream in STREAMS)
+    eval_keys, video_keys = (jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, stream) for stream in evaluation.STREAMS)
+    evolve = population.step_program(plan, placement, state) if plan.pbt else None
+    seconds = time.perf_counter() - start
     return Compiled(
-        trainer, placement, state, record, run_chunk, chunk, time.perf_counter() - start, run_eval, eval_keys, capture, video_keys
-    )  # fmt: skip
-
-
-STREAMS = (0x5EED, 0x71DE0)  # evaluation's and videos'
-
-
-def run_policy(trainer: ppo.Trainer, env: envs.Env) -> Callable[[dict[str, Any]], Policy]:
-    """A run's deterministic-capable `Policy` from its `evaluation_inputs`."""
-    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
-    return lambda inputs: Policy(trainer.config, trainer.actor, inputs["actor"], inputs["obs_stats"], low, high)
-
-
-def compile_evaluation(plan: RunPlan, env: envs.Env, trainer: ppo.Trainer) -> Callable:
-    """The evaluation of every run, jitted for one device: the deterministic policy (normalised as
-    in training, with the statistics of the moment) on `eval_episodes` fresh copies of the
-    environment, scored by the environment's own rewards (no scaling or normalisation). For a
-    host-side environment the copies are a pool of their own simulators. It takes the real runs'
-    `evaluation_inputs` on the host, wherever the runs train, and compiles at its first call."""
-    copies, make_policy = envs.vectorize(env, plan.eval_episodes), run_policy(trainer, env)
-
-    def evaluate(inputs: dict[str, Any], key: jax.Array) -> jax.Array:
-        policy = make_policy(inputs)
-        key = jax.random.fold_in(key, inputs["update"])
-        returns, _ = first_episode_returns(copies, policy, plan.eval_episodes, key, deterministic=True)
-        return returns.mean()
-
-    program = jax.jit(jax.vmap(evaluate))
-    if not isinstance(copies, envs.BatchedHostEnv):
-        return program
-
-    def evaluate_and_close(inputs: dict[str, Any], keys: jax.Array) -> jax.Array:
-        # Every evaluation builds its own pools of simulators; nothing steps them afterwards.
-        returns = jax.block_until_ready(program(inputs, keys))
-        copies.close()
-        return returns
-
-    return evaluate_and_close
-
-
-def evaluation_inputs(trainer: ppo.Trainer, state: ppo.TrainState) -> dict[str, Any]:
-    """What an evaluation reads of a (placed) training state: the actor, the observation
-    statistics and the update count."""
-    return {"actor": state.params["actor"], "obs_stats": trainer.observation_statistics(state), "update": state.update}
+        trainer, placement, state, record, run_chunk, chunk, seconds, run_eval, eval_keys, capture, video_keys, evolve
+    )
 
 
 def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
@@ -340,7 +308,7 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     `first_update + chunk` (and after the last update), else None."""
     if compiled.run_eval is None or not falls_due(plan, plan.eval_updates, first_update, compiled.chunk):
         return None
-    inputs = compiled.placement.real_runs(evaluation_inputs(compiled.trainer, state))
+    inputs = compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state))
     return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
 
 
@@ -353,7 +321,7 @@ def after_chunk(
     eval_returns, videos = evaluate_after_chunk(plan, compiled, state, first_update), None
     clock.lap("eval_seconds")
     if compiled.capture and falls_due(plan, plan.video_updates, first_update, compiled.chunk):
-        inputs = jax.device_get(compiled.placement.real_runs(evaluation_inputs(compiled.trainer, state)))
+        inputs = jax.device_get(compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state)))
         videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
     clock.lap("video_seconds")
     return eval_returns, videos
@@ -419,6 +387,9 @@ def train_chunks(
                 sink.write(rows)
             if videos:
                 clock.lap("video_seconds")  # the sinks' copies of the videos (TensorBoard's GIFs, W&B's uploads)
+            if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
+                scored = (metrics.episode_return, logged_returns["eval_return"])
+                state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
             if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
                 clock.lap("train_seconds")
                 save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)

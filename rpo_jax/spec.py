@@ -58,6 +58,27 @@ class RunSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class Pbt:
+    """Population-based training: the runs of one command as a population whose worst members copy
+    better ones and explore their hyperparameters between chunks (`rpo_jax.pbt`)."""
+
+    pbt: bool = False
+    """train --population runs (seeds seed, seed + 1, ...) as one population (population-based training)"""
+    population: int = 8
+    """members of the population, trained together in one program, with --pbt"""
+    pbt_every: int | None = None
+    """env steps per member between exploit/explore steps (in whole chunks of updates); None: a tenth of the run"""
+    pbt_fields: str = "rpo_alpha=0.001:1.0,lr=1e-5:1e-3"
+    """NAME=LOW:HIGH,... the hyperparameters explored and their ranges; each member starts from values drawn within
+    them (log-uniform for rpo_alpha and lr); NAME in rpo_alpha, ent_coef, lr, drac_coef"""
+    pbt_quantile: float = 0.25
+    """the bottom fraction of members (by recent training return, or the last evaluation's with --eval-every) that copy
+    members of the top fraction, in (0, 0.5]"""
+    pbt_explore: Literal["perturb", "resample"] = "perturb"
+    """perturb: multiply each explored value by 0.8 or 1.25; resample: draw it again within its range; clipped to it"""
+
+
+@dataclasses.dataclass(frozen=True)
 class Processes:
     """Where the runs train: the devices of each process, the processes and the compile cache."""
 
@@ -92,8 +113,8 @@ class TrainedRun:
     """The trained policy that evaluate and export read: one run of a finished training run's directory."""
 
     run_dir: tyro.conf.Positional[RunDirectory]
-    run: int = 0
-    """which of the directory's runs (index in config.json)"""
+    run: int | None = None
+    """which of the directory's runs (index in config.json); default: the first, or a population's best member"""
 
     def record(self) -> dict[str, Any]:
         """config.json's record; refuses a directory without trained parameters, and a --run it lacks."""
@@ -101,9 +122,13 @@ class TrainedRun:
         if not run_dir.has_params():
             raise UsageError(f"{self.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
         saved = run_dir.read_config()
-        if not 0 <= self.run < len(saved["runs"]):
+        if not 0 <= self.index() < len(saved["runs"]):
             raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {self.run}")
         return saved
+
+    def index(self) -> int:
+        """The run chosen: --run, or by default the first, or a population's best member."""
+        return RunDir(self.run_dir).default_run() if self.run is None else self.run
 
 
 # The flags that make several processes train together.

@@ -3,6 +3,7 @@
     python -m rpo_jax.train --env cartpole --num-envs 4096
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
     python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
+    python -m rpo_jax.train --algo rpo --pbt --population 8 --pbt-fields rpo_alpha=0.001:1.0,lr=1e-5:1e-3
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
@@ -28,7 +29,7 @@ import tyro
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.scores import with_spread
-from rpo_jax.spec import PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
+from rpo_jax.spec import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
 
 PROG = "python -m rpo_jax.train"
 
@@ -45,6 +46,7 @@ class TrainArgs:
     preset: PresetName | None = None
     """start from a named config instead of the CPU defaults"""
     run: tyro.conf.OmitArgPrefixes[RunSpec] = RunSpec()
+    pbt: tyro.conf.OmitArgPrefixes[Pbt] = Pbt()
     processes: tyro.conf.OmitArgPrefixes[Processes] = Processes()
     tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
     resume: Path | None = None
@@ -58,8 +60,11 @@ def parse_args(argv: Sequence[str]) -> TrainArgs:
 
 
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
-    """Refuses flags that the chosen algorithm does not read."""
+    """Refuses flags that the chosen algorithm does not read, and population flags without --pbt."""
     check_applies(args.config.algo, sorted(given), flag)
+    population_flags = sorted(given & {field.name for field in dataclasses.fields(Pbt)} - {"pbt"})
+    if population_flags and not args.pbt.pbt:
+        raise UsageError(f"{', '.join(map(flag, population_flags))}: population flags, which apply with --pbt only")
 
 
 def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> None:
@@ -69,7 +74,7 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
         raise UsageError(
             f"--out {args.run.out} differs from --resume {args.resume}; a resumed run continues in its own directory"
         )
-    groups = (args.config, args.run, args.processes)
+    groups = (args.config, args.run, args.pbt, args.processes)
     values = {"env": args.env, "preset": args.preset, **{k: v for group in groups for k, v in vars(group).items()}}
     for name in sorted(given & saved.keys()):
         value, saved_value = values[name], saved[name]
@@ -85,14 +90,16 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     given = given_fields(argv)
     if args.resume:
         plan = plans.resumed_plan(args.resume)
-        check_resume(args, given, {**plans.plan_record(plan), **dataclasses.asdict(plan.config)})
+        population = plan.pbt or dataclasses.asdict(Pbt())
+        check_resume(args, given, {**plans.plan_record(plan), **population, **dataclasses.asdict(plan.config)})
         return dataclasses.replace(plan, allow_relayout=args.processes.allow_relayout)
     if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
     env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name
     out = args.run.out or Path("runs") / f"{env}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
-    return plans.new_plan(args.env, args.config, dataclasses.replace(args.run, out=out), args.processes, args.preset)
+    run = dataclasses.replace(args.run, out=out)
+    return plans.new_plan(args.env, args.config, run, args.processes, args.preset, population=args.pbt)
 
 
 def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> dict[str, Any]:
@@ -123,6 +130,10 @@ def print_summary(summary: dict[str, Any]) -> None:
         evaluated = f", deterministic eval return {mean_and_spread(point, 'eval_return')}" if "eval_return_mean" in point else ""
         spread = with_spread("", " (mean ± sample std)", seeds)
         print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated}{spread} over {seeds} seed(s)")
+    if "best_member" in summary:
+        best = summary["runs"][summary["best_member"]]
+        now = " ".join(f"{name}={value:.3g}" for name, value in best["hparams"].items())
+        print(f"best member: run {best['run']} (seed {best['seed']}), final return {best['final_return']:.2f}, now {now}")
     print(
         f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
         f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"

@@ -75,7 +75,7 @@ def test_kept_fraction_is_the_last_window_over_the_best():
 def test_every_experiment_builds_valid_training_plans(tmp_path):
     expected_variants = {
         "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
-        "truncation": 4,
+        "truncation": 4, "pbt-alpha": 4,
     }  # fmt: skip
     for name, spec in experiment.EXPERIMENTS.items():
         definition = experiment.resolve(experiment.parse_args([name, "--envs", "cartpole"]))
@@ -83,7 +83,7 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
         variants = []
         for job in spec.jobs:
             plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name)
-            assert plan.num_seeds == 10 and plan.config.num_envs == 512  # the isaacgym preset
+            assert plan.num_seeds == (job.population or 10) and plan.config.num_envs == 512  # the isaacgym preset
             assert plan.config.algo == job.algo
             grid = plan_module.parse_sweeps(plan.sweep, plan.config)
             variants += [job.variant(run["hparams"]) for run in plan_module.describe_runs(plan, grid)]
@@ -259,7 +259,8 @@ def test_experiment_and_train_share_their_flags_by_name():
     trains, experiments = help_flags("rpo_jax.train"), help_flags("rpo_jax.experiment")
     # What they share has one name; each has only its own besides (no --seeds for --num-seeds).
     assert experiments - trains == {"--suite", "--envs", "--jobs"}
-    assert trains - experiments == {"--env", "--resume"}
+    population = {"--pbt", "--no-pbt", "--population", "--pbt-every", "--pbt-fields", "--pbt-quantile", "--pbt-explore"}
+    assert trains - experiments == {"--env", "--resume", *population}
     for name in ("--num-seeds", "--total-timesteps", "--num-envs", "--num-steps", "--eval-every", "--eval-episodes",
                  "--cpu-devices", "--quiet", "--out", "--checkpoint-every", "--preset", "--no-compile-cache", "--track",
                  "--allow-relayout"):

@@ -17,7 +17,7 @@ import pytest
 from point_mass import PointMass
 
 import rpo_jax
-from rpo_jax import envs, evaluate, export, report, runner, train
+from rpo_jax import envs, evaluate, evaluation, export, report, train
 from rpo_jax.acting import first_episode_returns
 from rpo_jax.config import Config
 from rpo_jax.envs import registry
@@ -128,7 +128,7 @@ def test_one_deterministic_number_in_training_through_load_policy_evaluate_and_o
     out, summary, _ = evaluated_run
     in_training = summary["runs"][0]["eval_return"]
     # The evaluation's episodes: the key the runner evaluated the last update with.
-    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), runner.STREAMS[0]), TINY.num_updates)
+    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), evaluation.STREAMS[0]), TINY.num_updates)
     copies = envs.vectorize(envs.make_env(ENV), EVAL_EPISODES)
     loaded = rpo_jax.load_policy(out, 0)
     through_evaluate = evaluate.episode_returns(copies, loaded, EVAL_EPISODES, key, deterministic=True).mean()

@@ -1,0 +1,160 @@
+"""Population-based training (Jaderberg et al. 2017) over the run axis: the P runs of one command
+are a population whose worst members copy better ones and explore their hyperparameters.
+
+    rule = Rule(fields=(("rpo_alpha", 0.001, 1.0), ("lr", 1e-5, 1e-3)), quantile=0.25, explore="perturb")
+    state, donors = step(state, scores, key, rule, members=8)
+
+Everything here is a pure array function over the leading population axis [P] of a vmapped
+`ppo.TrainState`, jittable with `rule` and `members` static: exploit and explore run on the
+devices, between chunks, without recompiling the chunk (the hyperparameters are arrays of the
+state). A member that exploits copies its donor's parameters, optimiser state, hyperparameters
+and normalisers' statistics; it keeps its own environments (a host-side simulator pool belongs
+to one member), observations, key, update count and episode returns, so that every member keeps
+its own random stream and the population stays one of P distinct runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from rpo_jax import envs, ppo
+from rpo_jax.config import SWEEPABLE, check_applies
+from rpo_jax.errors import UsageError
+
+EXPLORE_RULES = ("perturb", "resample")
+# Perturbation multiplies a value by one of these, each as likely (the paper's 0.8 and 1.2; 1.25
+# undoes 0.8, so that a value perturbed both ways comes back).
+PERTURB_FACTORS = (0.8, 1.25)
+# Hyperparameters that act by their order of magnitude: resampled uniformly in their logarithm.
+LOG_SCALE = ("rpo_alpha", "lr")
+# Streams of the population's keys, apart from training's and evaluation's.
+INIT_STREAM, STEP_STREAM = 0x9B70, 0x9B71
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+    """How the population evolves: `fields` (name, low, high) explored within [low, high], the
+    `quantile` of members that copy (and of the members they copy from), and the explore rule."""
+
+    fields: tuple[tuple[str, float, float], ...]
+    quantile: float = 0.25
+    explore: str = "perturb"
+
+
+def parse_fields(text: str, algo: str) -> tuple[tuple[str, float, float], ...]:
+    """`--pbt-fields` "NAME=LOW:HIGH,NAME=LOW:HIGH" as (name, low, high); bad input raises UsageError."""
+    fields: list[tuple[str, float, float]] = []
+    for part in filter(None, text.split(",")):
+        name, _, bounds = part.partition("=")
+        if name not in SWEEPABLE:
+            raise UsageError(f"--pbt-fields {part}: unknown field {name!r}; explorable: {', '.join(SWEEPABLE)}")
+        check_applies(algo, [name], lambda name: f"--pbt-fields {name}")
+        try:
+            low, high = (float(value) for value in bounds.split(":"))
+        except ValueError:
+            raise UsageError(f"--pbt-fields {part}: give NAME=LOW:HIGH with two numbers, e.g. lr=1e-5:1e-3") from None
+        if not 0 <= low < high < math.inf or (name in LOG_SCALE and low == 0):
+            positive = "0 < LOW" if name in LOG_SCALE else "0 <= LOW"
+            raise UsageError(f"--pbt-fields {part}: the range must have {positive} < HIGH (finite), got {low:g}:{high:g}")
+        if name in (field[0] for field in fields):
+            raise UsageError(f"--pbt-fields {name} is given twice; give its range once")
+        fields.append((name, low, high))
+    if not fields:
+        raise UsageError(f"--pbt-fields must name at least one NAME=LOW:HIGH, got {text!r}; explorable: {', '.join(SWEEPABLE)}")
+    return tuple(fields)
+
+
+def resample(key: jax.Array, rule: Rule, shape: tuple[int, ...]) -> dict[str, jax.Array]:
+    """Each explored field drawn independently within its range, log-uniformly for LOG_SCALE's:
+    {name: [*shape] float32}."""
+    drawn = {}
+    for (name, low, high), field_key in zip(rule.fields, jax.random.split(key, len(rule.fields))):
+        unit = jax.random.uniform(field_key, shape)
+        if name in LOG_SCALE:
+            drawn[name] = jnp.exp(jnp.log(low) + unit * (jnp.log(high) - jnp.log(low)))
+        else:
+            drawn[name] = low + unit * (high - low)
+    return {name: jnp.clip(value, low, high) for (name, low, high), value in zip(rule.fields, drawn.values())}
+
+
+def initial_hyperparameters(seed: int, members: int, rule: Rule) -> list[dict[str, float]]:
+    """Each member's starting values of the explored fields, drawn by `resample` from the seed."""
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), INIT_STREAM)
+    drawn = jax.device_get(resample(key, rule, (members,)))
+    return [{name: float(values[member]) for name, values in drawn.items()} for member in range(members)]
+
+
+def step_key(seed: int, update: int) -> jax.Array:
+    """The key of the exploit/explore step after `update`: from the population's seed and the
+    update count alone, so that a resumed run draws what the uninterrupted one drew."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STEP_STREAM), update)
+
+
+def choose_donors(scores: jax.Array, key: jax.Array, quantile: float) -> jax.Array:
+    """scores [P] -> donors [P] int32: each member of the bottom `quantile` (by score, ties to the
+    lower index) gets a donor drawn from the top `quantile`; every other member is its own."""
+    members = scores.shape[0]
+    count = min(members // 2, max(1, math.floor(members * quantile)))
+    own = jnp.arange(members, dtype=jnp.int32)
+    if count == 0:
+        return own
+    order = jnp.argsort(-jnp.nan_to_num(scores, nan=-jnp.inf), stable=True).astype(jnp.int32)
+    picks = jax.random.randint(key, (count,), 0, count)
+    return own.at[order[members - count :]].set(order[:count][picks])
+
+
+def exploit(state: ppo.TrainState, donors: jax.Array) -> ppo.TrainState:
+    """`state` [P, ...] where member i takes member donors[i]'s parameters, optimiser state,
+    hyperparameters and normalisers' statistics (value and, inside the environment state,
+    observation and reward); everything else stays member i's own."""
+
+    def take(tree: Any) -> Any:
+        return jax.tree.map(lambda leaf: leaf[donors], tree)
+
+    def statistics_only(node: Any) -> Any:
+        return take(node) if isinstance(node, envs.RunningMeanStd) else node
+
+    env_state = jax.tree.map(statistics_only, state.env_state, is_leaf=lambda node: isinstance(node, envs.RunningMeanStd))
+    return state.replace(
+        params=take(state.params), opt_state=take(state.opt_state), hparams=take(state.hparams),
+        value_stats=take(state.value_stats), env_state=env_state,
+    )  # fmt: skip
+
+
+def explore(hparams: ppo.Hyperparams, moved: jax.Array, key: jax.Array, rule: Rule) -> ppo.Hyperparams:
+    """hparams [P] with the explored fields of the members where `moved` [P] bool is true
+    perturbed by a factor of PERTURB_FACTORS, or resampled, within their ranges."""
+    members = moved.shape[0]
+    factor_key, sample_key = jax.random.split(key)
+    if rule.explore == "resample":
+        new = resample(sample_key, rule, (members,))
+    else:
+        factor_keys = jax.random.split(factor_key, len(rule.fields))
+        factors = jnp.asarray(PERTURB_FACTORS, jnp.float32)
+        new = {
+            name: jnp.clip(getattr(hparams, name) * jax.random.choice(k, factors, (members,)), low, high)
+            for (name, low, high), k in zip(rule.fields, factor_keys)
+        }  # fmt: skip
+    return dataclasses.replace(hparams, **{name: jnp.where(moved, value, getattr(hparams, name)) for name, value in new.items()})
+
+
+def step(state: ppo.TrainState, scores: jax.Array, key: jax.Array, rule: Rule, members: int) -> tuple[ppo.TrainState, jax.Array]:
+    """One exploit/explore step of the first `members` of `state` [P, ...] (the others, padding,
+    are left alone) scored by `scores` [members or more]. Returns the state and donors [members]. The optimiser's
+    learning rate of a member that moved is its donor's scaled by the change of `lr`, so that a
+    schedule's progress (linear, adaptive) carries over and the new `lr` takes effect."""
+    donor_key, explore_key = jax.random.split(key)
+    donors = choose_donors(scores[:members], donor_key, rule.quantile)
+    total = state.update.shape[0]
+    padded = jnp.concatenate([donors, jnp.arange(members, total, dtype=jnp.int32)])
+    copied = exploit(state, padded)
+    moved = padded != jnp.arange(total)
+    hparams = explore(copied.hparams, moved, explore_key, rule)
+    ratio = jnp.where(copied.hparams.lr > 0, hparams.lr / copied.hparams.lr, 1.0)
+    opt_state = ppo.set_learning_rate(copied.opt_state, copied.opt_state.hyperparams["learning_rate"] * ratio)
+    return copied.replace(hparams=hparams, opt_state=opt_state), donors

@@ -1,0 +1,169 @@
+"""Population-based training through the command line (--pbt): the lineage and the rows record the
+members' hyperparameters, a killed population resumes bit for bit, 2 devices agree with 1, host-side
+environments train, the best member is the default policy, and bad flags are one line."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from point_mass import PointMass
+from test_devices import ROOT, params_of
+from test_host import SPEC, host_point_mass
+
+from rpo_jax import envs, experiment, export, policy, train
+from rpo_jax.rundir import PARAMS_FILE, SUMMARY_FILE, RunDir
+
+NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
+BATCH = NUM_ENVS * NUM_STEPS
+SIZE = ["--num-envs", str(NUM_ENVS), "--num-steps", str(NUM_STEPS), "--num-minibatches", "2", "--update-epochs", "1"]
+# 4 members exploring alpha and lr every 4 updates (the worst copies the best at 4, 8, 12 and 16).
+POPULATION = ["--pbt", "--population", "4", "--pbt-every", str(4 * BATCH), "--log-every", "1", "--quiet"]
+COMMAND = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(UPDATES * BATCH), *POPULATION]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def test_envs():
+    from rpo_jax.envs import registry
+
+    saved = dict(registry._REGISTRY)
+    envs.register_env("test/point_mass", PointMass, PointMass.spec)
+    envs.register_env("host_point_mass", host_point_mass, SPEC)
+    yield
+    registry._REGISTRY.clear()
+    registry._REGISTRY.update(saved)
+
+
+def without_sps(out: Path) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "sps"} for row in RunDir(out).read_metrics()]
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A population trained to the end, checkpointed every 7 updates (at 7 and 14)."""
+    out = tmp_path_factory.mktemp("pbt") / "run"
+    assert train.main([*COMMAND, "--out", str(out), "--checkpoint-every", str(7 * BATCH)]) == 0
+    return out
+
+
+def test_the_lineage_and_the_rows_follow_the_members_hyperparameters(finished):
+    lineage = RunDir(finished).read_lineage()
+    assert [row["update"] for row in lineage] == [4, 8, 12, 16]  # one of 4 members copies at each step
+    rows = {(row["run"], row["update"]): row for row in RunDir(finished).read_metrics()}
+    for step in lineage:
+        member, donor, update = step["member"], step["donor"], step["update"]
+        assert member != donor and step["old"] != step["new"]
+        assert {name: rows[member, update][name] for name in step["old"]} == step["old"]  # what it trained with
+        assert {name: rows[member, update + 1][name] for name in step["new"]} == step["new"]  # what it trains with now
+        ratio = step["new"]["rpo_alpha"] / rows[donor, update]["rpo_alpha"]  # perturbed, within 0.001:1
+        assert any(ratio == pytest.approx(factor, rel=1e-6) for factor in (0.8, 1.25)) or step["new"]["rpo_alpha"] in (0.001, 1.0)
+    config = json.loads((finished / "config.json").read_text())
+    assert config["plan"]["pbt"]["population"] == 4 and len({run["hparams"]["lr"] for run in config["runs"]}) == 4
+
+
+def test_a_killed_and_resumed_population_ends_as_the_uninterrupted_one(finished, tmp_path, capsys):
+    out = tmp_path / "killed"
+    shutil.copytree(finished, out)  # as if killed after its checkpoint at update 14, with rows and lineage past it
+    (out / SUMMARY_FILE).unlink()
+    (out / PARAMS_FILE).unlink()
+    assert train.main(["--resume", str(out), "--population", "5"]) == 2
+    assert f"--resume {out}: the run was made with --population 4, not 5" in capsys.readouterr().err
+    assert train.main(["--resume", str(out), "--pbt", "--population", "4", "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_sps(out) == without_sps(finished)
+    assert RunDir(out).read_lineage() == RunDir(finished).read_lineage()  # the step at 16 drawn again, the same
+
+
+def test_the_best_member_is_the_default_policy(finished):
+    summary = RunDir(finished).read_summary()
+    best = summary["best_member"]
+    assert best == int(np.argmax([run["final_return"] for run in summary["runs"]]))
+    default, chosen = policy.load_run(finished)[2], policy.load_run(finished, best)[2]
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(default), jax.tree.leaves(chosen), strict=True))
+    other = (best + 1) % 4
+    assert not np.array_equal(jax.tree.leaves(default)[0], jax.tree.leaves(policy.load_run(finished, other)[2])[0])
+    exported, chosen_arrays = export.policy_arrays(finished), export.policy_arrays(finished, best)
+    assert all(np.array_equal(exported[name], chosen_arrays[name]) for name in chosen_arrays)
+
+
+def test_host_side_members_train_and_evolve_scored_by_evaluation(tmp_path):
+    out = tmp_path / "host"
+    flags = ["--env", "host_point_mass", "--num-envs", "2", "--num-steps", "8", "--num-minibatches", "2"]
+    flags += ["--total-timesteps", str(16 * 6), "--pbt", "--population", "2", "--pbt-every", "32"]
+    flags += ["--eval-every", "32", "--eval-episodes", "2", "--quiet", "--out", str(out)]
+    assert train.main(flags) == 0
+    lineage = RunDir(out).read_lineage()
+    assert [row["update"] for row in lineage] == [2, 4]
+    evaluated = {(row["run"], row["update"]): row["eval_return"] for row in RunDir(out).read_metrics() if "eval_return" in row}
+    for step in lineage:  # the member with the lower evaluation return copies the other
+        assert evaluated[step["member"], step["update"]] <= evaluated[step["donor"], step["update"]]
+
+
+# Trains a point-mass command (its flags after the script) with the test's environment registered.
+TRAIN_POINT_MASS = (
+    "import sys; sys.path.insert(0, sys.argv.pop(1)); from point_mass import PointMass; from rpo_jax import envs, train; "
+    "envs.register_env('test/point_mass', PointMass, PointMass.spec); sys.exit(train.main(sys.argv[1:]))"
+)
+
+
+def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(tmp_path):
+    # One exploit step after update 2 of 3; the 2-device run in a process of its own, whose CPU
+    # --cpu-devices splits before JAX starts.
+    flags = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(3 * BATCH), *POPULATION[:3], "--pbt-every"]
+    flags += [str(2 * BATCH), "--quiet"]
+    assert train.main([*flags, "--out", str(tmp_path / "d1")]) == 0
+    environment = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+    command = [sys.executable, "-c", TRAIN_POINT_MASS, str(ROOT / "tests"), *flags, "--cpu-devices", "2"]
+    result = subprocess.run([*command, "--out", str(tmp_path / "d2")], env=environment, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr[-3000:]
+    lineage, split = RunDir(tmp_path / "d1").read_lineage(), RunDir(tmp_path / "d2").read_lineage()
+    assert len(lineage) == 1 and lineage[0]["update"] == 2
+    assert [(r["member"], r["donor"]) for r in split] == [(r["member"], r["donor"]) for r in lineage]
+    for name in ("old", "new"):
+        np.testing.assert_allclose(list(split[0][name].values()), list(lineage[0][name].values()), rtol=1e-6)
+    for a, b in zip(params_of(tmp_path / "d2"), params_of(tmp_path / "d1"), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
+    assert RunDir(tmp_path / "d2").read_summary()["devices"] == 2
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--pbt", "--population", "1"], "--population must be an integer >= 2, got 1"),
+        (["--pbt", "--pbt-quantile", "0.7"], "--pbt-quantile must be in (0, 0.5], got 0.7"),
+        (["--pbt", "--pbt-every", "0"], "--pbt-every must be >= 1"),
+        (["--pbt", "--pbt-fields", "alpha=0.1:1"], "--pbt-fields alpha=0.1:1: unknown field 'alpha'"),
+        (["--pbt", "--pbt-fields", "lr=1e-3:1e-5"], "the range must have 0 < LOW < HIGH"),
+        (["--pbt", "--num-seeds", "2"], "give no --num-seeds or --sweep with it"),
+        (["--pbt", "--sweep", "lr=1e-4,3e-4"], "give no --num-seeds or --sweep with it"),
+        (["--population", "4"], "--population: population flags, which apply with --pbt only"),
+        (["--pbt", "--pbt-explore", "mutate"], "--pbt-explore"),
+        (["--pbt", "--algo", "ppo"], "--pbt-fields rpo_alpha applies to --algo rpo only"),
+    ],
+)
+def test_bad_population_flags_are_one_line_and_exit_2(tmp_path, capsys, flags, message):
+    out = tmp_path / "bad"
+    assert train.main(["--env", "test/point_mass", *SIZE, "--quiet", *flags, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert not out.exists()
+
+
+def test_the_pbt_alpha_experiment_trains_a_population_beside_fixed_alphas(tmp_path):
+    out = tmp_path / "pbt-alpha"
+    flags = ["--envs", "test/point_mass", "--jobs", "rpo-0.01", "pbt", *SIZE, "--total-timesteps", str(8 * BATCH)]
+    assert experiment.main(["pbt-alpha", *flags, "--num-seeds", "2", "--quiet", "--out", str(out)]) == 0
+    with open(out / "results.csv", newline="") as file:
+        runs = {(row["variant"], row["seed"]) for row in csv.DictReader(file)}
+    assert sorted(seed for variant, seed in runs if variant == "rpo-0.01") == ["1", "2"]
+    assert len([seed for variant, seed in runs if variant == "pbt"]) == 8  # the population's members
+    population = RunDir(out / "runs" / "test_point_mass" / "pbt")
+    assert population.read_lineage() and population.read_summary()["best_member"] in range(8)
