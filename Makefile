@@ -7,7 +7,7 @@ VENV ?= .venv
 TEST_WORKERS ?= 2
 PY := $(VENV)/bin/python
 
-.PHONY: train test lint benchmark wheel-check
+.PHONY: train test lint docs docs-serve benchmark wheel-check
 
 $(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -30,7 +30,15 @@ lint: $(VENV)/.dev
 	$(VENV)/bin/ruff check rpo_jax tests benchmarks
 	$(VENV)/bin/lint-imports
 
-test: lint
+# The site in site/, strict: a warning, a broken link or anchor fails the build.
+docs: $(VENV)/.dev
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+
+# The site at http://127.0.0.1:8000, rebuilt as the pages change.
+docs-serve: $(VENV)/.dev
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs serve
+
+test: lint docs
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The built wheel, installed (not editable) into a fresh venv outside the source tree with the

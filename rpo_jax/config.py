@@ -131,22 +131,27 @@ class Config:
 
     @property
     def algorithm(self) -> Algorithm:
+        """The row of `ALGORITHMS` that `algo` names."""
         return ALGORITHMS[self.algo]
 
     @property
     def augmentation(self) -> str:
+        """The algorithm's observation augmentation: "none", "rad" or "drac"."""
         return self.algorithm.augmentation
 
     @property
     def batch_size(self) -> int:
+        """Samples per update and run: num_envs x num_steps."""
         return self.num_envs * self.num_steps
 
     @property
     def minibatch_size(self) -> int:
+        """Samples per gradient step: batch_size / num_minibatches."""
         return self.batch_size // self.num_minibatches
 
     @property
     def num_updates(self) -> int:
+        """Updates per run: total_timesteps // batch_size."""
         return self.total_timesteps // self.batch_size
 
     def hyperparameters(self) -> dict[str, float]:

@@ -69,9 +69,15 @@ class Env(Protocol):
 
     spec: EnvSpec
 
-    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]: ...
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        """A new episode drawn from `key` (a PRNG key): the state (a pytree) and its first
+        `TimeStep` (obs [obs_size], or [N, obs_size] batched)."""
+        ...
 
-    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]: ...
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        """One step with `action` [action_size] ([N, action_size] batched): the next state and
+        its `TimeStep`."""
+        ...
 
 
 @runtime_checkable
@@ -102,7 +108,9 @@ class DrawsStarts(Protocol):
 
     defers_start: bool
 
-    def draw_starts(self, state: Any, key: jax.Array) -> tuple[Any, Start]: ...
+    def draw_starts(self, state: Any, key: jax.Array) -> tuple[Any, Start]:
+        """A new pool of initial states drawn from `key`, for the episodes that end in the next rollout."""
+        ...
 
 
 @runtime_checkable
@@ -112,7 +120,9 @@ class Vectorizable(Protocol):
 
     spec: EnvSpec
 
-    def vectorize(self, num_envs: int) -> BatchedEnv: ...
+    def vectorize(self, num_envs: int) -> BatchedEnv:
+        """The batched environment of `num_envs` simulators."""
+        ...
 
 
 @runtime_checkable
@@ -125,7 +135,9 @@ class Renderable(Protocol):
     mj_model: mujoco.MjModel
     control_dt: float  # seconds per step, for the video's frame rate
 
-    def qpos(self, state: Any) -> jax.Array: ...
+    def qpos(self, state: Any) -> jax.Array:
+        """MuJoCo's joint positions [mj_model.nq] of one environment's state, to render it."""
+        ...
 
 
 def first_step(obs: jax.Array) -> TimeStep:
