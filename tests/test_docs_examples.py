@@ -109,7 +109,17 @@ def test_an_override_that_no_longer_matches_is_an_error(tmp_path):
         examples(page)
 
 
-@pytest.mark.parametrize("page", [page for page in PAGES if examples(page)], ids=lambda page: page.relative_to(ROOT).as_posix())
+# Pages whose examples the default suite leaves to `pytest -m slow`: each trains several times
+# (about 100 s and 30 s on 2 cores), and tests/test_library.py runs the same library calls.
+SLOW_PAGES = {"docs/library.md", "docs/own-environment.md"}
+
+
+def page_param(page: Path) -> object:
+    name = page.relative_to(ROOT).as_posix()
+    return pytest.param(page, id=name, marks=[pytest.mark.slow] if name in SLOW_PAGES else [])
+
+
+@pytest.mark.parametrize("page", [page_param(page) for page in PAGES if examples(page)])
 def test_the_examples_of_a_page_run(page, tmp_path, compile_cache):
     for example in examples(page):
         result = run_example(example, tmp_path, compile_cache)

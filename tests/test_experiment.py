@@ -201,6 +201,7 @@ def test_evaluation_of_a_trained_policy_beats_a_random_one(uninterrupted, capsys
     assert "cartpole run 0 (seed 1), deterministic policy: return" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # drawing is covered by tests/test_video.py in the default suite; this adds the experiment's run
 def test_evaluation_renders_a_video(uninterrupted, tmp_path):
     imageio = pytest.importorskip("imageio.v2")
     import mujoco

@@ -185,6 +185,7 @@ rpo_jax.save_run("out", trainer, None, None, env=3)
 """
 
 
+@pytest.mark.slow  # mypy over the package takes about 35 s on 2 cores
 def test_a_type_checker_accepts_the_usage_file_and_catches_a_wrong_use(tmp_path):
     pytest.importorskip("mypy")
     wrong = tmp_path / "wrong_use.py"
