@@ -278,6 +278,7 @@ def join_processes(
     peers.watch(coordinator or "of the cluster job", timeout)
     local_counts = sorted({len(_devices_of(process)) for process in range(jax.process_count())})
     if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
+        peers.stop_watching()
         raise UsageError(
             f"the processes hold {' or '.join(map(str, local_counts))} local devices; JAX's collectives need as many "
             "on each (the same --cpu-devices, or as many GPUs visible to each)"
@@ -357,6 +358,8 @@ def refused_together(make: Callable[[], T]) -> T:
         refused = multihost_utils.process_allgather(np.int32(error is not None))
         if error is None and refused.any():
             error = UsageError(f"process {int(np.argmax(refused))} refused the run (its error says why)")
+        if error is not None:
+            peers.stop_watching()  # all stop now: whichever exits first is no lost peer
     if error is not None:
         raise error
     return made

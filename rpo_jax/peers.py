@@ -19,6 +19,9 @@ from typing import Any
 import jax
 
 BEAT, FINISHED = "rpo_jax/beat/", "rpo_jax/finished/"
+# Set once the processes have agreed to stop (a run refused by one of them): a peer that exits
+# first is then expected, and the line already printed is the one that says why.
+_stopped = threading.Event()
 # What a collective's error says when a peer went away (gloo on CPUs; the coordination service).
 LOST_PEER_WORDS = ("Connection closed by peer", "Connection reset by peer", "Gloo", "UNAVAILABLE")
 
@@ -35,6 +38,20 @@ def watch(coordinator: str, timeout: int) -> None:
     sys.excepthook = _lost_peer_or(sys.excepthook)
     thread = threading.Thread(target=_watch, args=(client, me, count, coordinator, timeout), daemon=True)
     thread.start()
+
+
+def stop_watching() -> None:
+    """Ends this process's watch: every process is about to stop with exit code 2, for a reason
+    its error says. At exit it leaves at once: JAX's own shutdown of the distributed client would
+    wait for, or abort on, a coordinator that has already gone."""
+    _stopped.set()
+    atexit.register(_leave)  # registered after JAX's shutdown, so it runs before it
+
+
+def _leave() -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(2)
 
 
 def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> None:
@@ -88,6 +105,10 @@ def _get(client: Any, key: str) -> str | None:
 
 
 def _exit(why: str) -> None:
+    if _stopped.is_set():
+        # The processes stop together, this one with its reason printed and exit code 2: a peer
+        # gone first is no news, and exiting now keeps a call blocked on it from aborting the exit.
+        os._exit(2)
     print(
         f"error: the run's processes lost one another: {why}; checkpoints written so far are kept, resume with "
         "the same command and --resume once every process is back (--coordinator-timeout SECONDS waits longer)",
