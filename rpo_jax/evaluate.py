@@ -100,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run_command(args: EvaluateArgs) -> None:
-    saved = args.trained.record()
+    saved, run = args.trained.record(), args.trained.index()
     if args.video:
         check_video_path(args.video)
     import jax
@@ -111,11 +111,10 @@ def run_command(args: EvaluateArgs) -> None:
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:
         video.check_video(env, "--video")
-    policy = load_policy(args.trained.run_dir, args.trained.index())
+    policy = load_policy(args.trained.run_dir, run)
     key = jax.random.PRNGKey(args.seed)
     deterministic = not args.stochastic
     returns = episode_returns(env, policy, args.eval_episodes, key, deterministic)
-    run = args.trained.index()
     spread = with_spread(f"{returns.mean():.2f}", f" ± {sample_std(returns):.2f}", args.eval_episodes)
     print(
         f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "
