@@ -24,11 +24,13 @@ import contextlib
 import copy
 import dataclasses
 import errno
+import itertools
 import os
 import subprocess
 import tempfile
 import warnings
 from pathlib import Path
+from collections.abc import Iterable, Sequence
 from typing import Any, Callable, Iterator
 
 import jax
@@ -46,9 +48,10 @@ WIDTH, HEIGHT = 480, 360
 @dataclasses.dataclass
 class Episode:
     """One drawn episode: a frame [HEIGHT, WIDTH, 3] uint8 per state from the reset to its end
-    (steps + 1 frames), its undiscounted return and the frame rate of simulated time."""
+    (steps + 1 frames), its undiscounted return and the frame rate of simulated time. An MJX
+    task's frames are `DrawnFrames`, drawn as they are read; a host-side suite's are held."""
 
-    frames: list[np.ndarray]
+    frames: Sequence[np.ndarray]
     total: float
     fps: float
 
@@ -81,7 +84,7 @@ def check_video(env: envs.Env, flag: str) -> None:
             simulator.frame()
             simulator.close()
         else:
-            draw(env, [np.asarray(render_model(env).qpos0)])
+            list(draw(env, [np.asarray(render_model(env).qpos0)]))
     except UsageError:
         raise
     except Exception as error:  # whatever stops a first frame stops every frame: say so now
@@ -173,7 +176,7 @@ def drawn_episodes(env: envs.Env, qpos: np.ndarray, rewards: np.ndarray, ended: 
     result = []
     for index in range(qpos.shape[1]):
         steps = int(np.argmax(ended[:, index])) + 1
-        frames = draw(env, list(qpos[: steps + 1, index]))
+        frames = DrawnFrames(env, qpos[: steps + 1, index])
         result.append(Episode(frames, float(rewards[:steps, index].sum()), fps))
     return result
 
@@ -209,9 +212,9 @@ def render_model(env: envs.Renderable) -> Any:
     return getattr(env, "render_model", env.mj_model)
 
 
-def draw(env: envs.Renderable, positions: list[np.ndarray]) -> list[np.ndarray]:
-    """One offscreen frame [HEIGHT, WIDTH, 3] uint8 per joint position, from the model's first
-    camera (MuJoCo's free camera, closer in, for a model without one)."""
+def draw(env: envs.Renderable, positions: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+    """One offscreen frame [HEIGHT, WIDTH, 3] uint8 per joint position, drawn as it is read, from
+    the model's first camera (MuJoCo's free camera, closer in, for a model without one)."""
     import mujoco
 
     model = render_model(env)
@@ -226,14 +229,31 @@ def draw(env: envs.Renderable, positions: list[np.ndarray]) -> list[np.ndarray]:
     else:
         mujoco.mjv_defaultFreeCamera(model, camera)
         camera.distance *= 0.6
-    frames = []
     with mujoco.Renderer(model, HEIGHT, WIDTH) as renderer:
         for qpos in positions:
             data.qpos[:] = qpos
             mujoco.mj_forward(model, data)
             renderer.update_scene(data, camera)
-            frames.append(renderer.render())
-    return frames
+            yield renderer.render()
+
+
+class DrawnFrames(Sequence[np.ndarray]):
+    """The frames of an episode's joint positions [T, nq], drawn when read rather than held: a
+    thousand-step episode's frames are half a gigabyte, its positions a few hundred kilobytes."""
+
+    def __init__(self, env: envs.Renderable, positions: np.ndarray) -> None:
+        self.env, self.positions = env, positions
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return draw(self.env, self.positions)
+
+    def __getitem__(self, index: Any) -> Any:
+        if isinstance(index, slice):
+            return list(draw(self.env, self.positions[index]))
+        return list(draw(self.env, [self.positions[index]]))[0]
 
 
 def write_mp4(path: Path, episodes: list[Episode]) -> None:
@@ -243,9 +263,11 @@ def write_mp4(path: Path, episodes: list[Episode]) -> None:
     disk) unseen, its messages on the terminal: ffmpeg's own here, its failure an OSError in one line."""
     import imageio_ffmpeg
 
-    frames = [frame for episode in episodes for frame in episode.frames]
+    frames = itertools.chain.from_iterable(episode.frames for episode in episodes)
+    first = next(frames)
+    frames = itertools.chain([first], frames)
     fps = round(episodes[0].fps)
-    height, width = frames[0].shape[:2]
+    height, width = first.shape[:2]
     with written_whole(path, ".tmp" + path.suffix) as tmp, tempfile.TemporaryFile() as log:
         command = [
             imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-v", "error", "-f", "rawvideo", "-pix_fmt", "rgb24",

@@ -97,19 +97,23 @@ def drawn_envs(isolated_registry):
 
 
 @needs_gl
-def test_cartpole_is_drawn_lit_on_a_floor_in_colour_and_its_physics_model_is_untouched():
-    env = envs.make_env("cartpole")
-    frame = video.draw(env, [np.array([0.5, 0.4])])[0]
+@pytest.mark.parametrize("name", ["cartpole", "ballbalance"])
+def test_the_mjx_tasks_are_drawn_lit_on_a_floor_in_colour_and_their_physics_models_are_untouched(name):
+    env = envs.make_env(name)
+    assert isinstance(env, envs.Renderable)  # ballbalance was named among the drawn tasks and refused
+    qpos = np.array([0.5, 0.4]) if name == "cartpole" else np.asarray(env.mj_model.qpos0)
+    (frame,) = video.draw(env, [qpos])
     assert frame.shape == (video.HEIGHT, video.WIDTH, 3)
     assert frame.mean() > 60  # the grey bodies on black had a mean pixel of 1.3
     floor, sky = frame[-video.HEIGHT // 4 :], frame[: video.HEIGHT // 8]
     assert floor.mean() > 40 and np.ptp(floor) > 40  # a chequered floor, lit to the bottom of the frame
     assert sky[..., 2].mean() > sky[..., 0].mean() + 20  # a blue sky
     orange = (frame[..., 0] > 150) & (frame[..., 2] < 100)
-    assert orange.sum() > 100  # the cart
-    # What is drawn is a copy: the physics model has no light, floor or camera, and the copy's joints are its own.
+    assert orange.sum() > 100  # the cart, the ball
+    # What is drawn is a copy with a floor, a light and a camera more; its joints are the physics model's.
     physics, drawn = env.mj_model, env.render_model
-    assert (physics.nlight, physics.ngeom, physics.ncam) == (0, 3, 0)
+    added = (drawn.nlight - physics.nlight, drawn.ngeom - physics.ngeom, drawn.ncam - physics.ncam)
+    assert added == (1, 1, 1) and physics.nlight == 0
     assert (drawn.nq, drawn.nv, drawn.nu, drawn.nbody) == (physics.nq, physics.nv, physics.nu, physics.nbody)
     floor_geom = drawn.geom("floor")
     assert (int(floor_geom.contype[0]), int(floor_geom.conaffinity[0])) == (0, 0)
@@ -122,6 +126,9 @@ def test_a_recorded_cartpole_video_has_one_frame_per_state_of_each_episode(tmp_p
     episodes = video.record(env, push, 2, jax.random.PRNGKey(0), deterministic=True)
     assert len(episodes) == 2 and all(0 < episode.steps < env.spec.max_episode_steps for episode in episodes)
     assert [episode.fps for episode in episodes] == [60.0, 60.0]
+    # Frames are drawn as they are read, not held: an episode keeps its joint positions only.
+    assert all(isinstance(episode.frames, video.DrawnFrames) for episode in episodes)
+    assert np.array_equal(episodes[0].frames[-1], list(episodes[0].frames)[-1])
     video.write_mp4(tmp_path / "push.mp4", episodes)
     frames = read_frames(tmp_path / "push.mp4")
     assert len(frames) == sum(episode.steps + 1 for episode in episodes)

@@ -4,9 +4,10 @@ registry can list the environment without it."""
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -130,6 +131,23 @@ def _leg(i: int, angle: float, drive_armature: float, drive_damping: float) -> t
     return leg, anchor, pin, drive
 
 
+# What only videos see (`render_model`): the scene (`video_scene`) with the floor under the robot's
+# feet, colours, and a camera in front of the tray and above it, so that the ball shows against it.
+RENDER_CAMERA = '<camera name="front" pos="0 -3.2 1.3" xyaxes="1 0 0 0 0.15 1"/>'
+RENDER_COLOURS = {'name="tray"': "0.25 0.45 0.7 1", 'name="ball"': "0.95 0.55 0.15 1", 'type="capsule"': "0.7 0.7 0.72 1"}
+
+
+def render_xml() -> str:
+    """The model dressed for videos (`video_scene`, `RENDER_CAMERA`, `RENDER_COLOURS`): the same
+    bodies and joints."""
+    from rpo_jax.envs.mjx_support import video_scene
+
+    xml = ballbalance_xml().replace("  <worldbody>", video_scene(0.0) + "\n    " + RENDER_CAMERA, 1)
+    for marker, rgba in RENDER_COLOURS.items():
+        xml = xml.replace(f"<geom {marker}", f'<geom {marker} rgba="{rgba}"', 1)
+    return xml
+
+
 def ballbalance_xml() -> str:
     """The MJCF model. Angles in radians; all lengths and masses from the constants above."""
     h = CONTROL_DT
@@ -232,6 +250,7 @@ class BallBalance:
         from rpo_jax.envs.mjx_support import mujoco, put_model
 
         self.mj_model = mujoco.MjModel.from_xml_string(ballbalance_xml())
+        self.control_dt = CONTROL_DT
         with warnings.catch_warnings():
             # MJX warns about the 40-gon faces for its polygon colliders; the sphere-convex one
             # used here walks a face's edges exactly, whatever their number.
@@ -259,6 +278,17 @@ class BallBalance:
             jnp.asarray(rest.site_xmat[self.mount_sites].reshape(3, 3, 3), jnp.float32),
             jnp.asarray(rest.xmat[self.tray_body].reshape(3, 3), jnp.float32),
         )
+
+    @staticmethod
+    def qpos(state: BallBalanceState) -> jax.Array:
+        return state.qpos
+
+    @functools.cached_property
+    def render_model(self) -> Any:
+        """A copy of the model for videos only (`render_xml`); training never sees it."""
+        from rpo_jax.envs.mjx_support import mujoco
+
+        return mujoco.MjModel.from_xml_string(render_xml())
 
     def reset(self, key: jax.Array) -> tuple[BallBalanceState, TimeStep]:
         k_dist, k_dir, k_height, k_speed = jax.random.split(key, 4)

@@ -41,27 +41,22 @@ CARTPOLE_XML = """
 """
 
 
-# What only videos see (`render_model`): a sky, a chequered floor below the swinging pole, a
-# light and colours. The floor collides with nothing. No shadows or
-# reflections: on a CPU's OpenGL (Mesa's llvmpipe) they make a frame 5 times slower.
-RENDER_ASSETS = """
-  <asset>
-    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.55 0.7 0.9" rgb2="0.1 0.15 0.25" width="256" height="256"/>
-    <texture name="grid" type="2d" builtin="checker" rgb1="0.45 0.5 0.55" rgb2="0.3 0.35 0.4" width="256" height="256"/>
-    <material name="grid" texture="grid" texrepeat="20 20"/>
-  </asset>
-  <worldbody>
-    <light name="sun" directional="true" pos="0 -2 6" dir="0 0.4 -1" diffuse="0.8 0.8 0.8" castshadow="false"/>
-    <geom name="floor" type="plane" size="20 20 0.1" pos="0 0 -1.1" material="grid" contype="0" conaffinity="0"/>"""
-# A camera beside the cart that follows it along the rail (the floor's squares show the motion).
+# What only videos see (`render_model`): the scene (`video_scene`) with the floor below the
+# swinging pole, colours, and a camera beside the cart that follows it along the rail (the floor's
+# squares show the motion).
+RENDER_FLOOR_HEIGHT = -1.1
 RENDER_CAMERA = """<body name="cart">
       <camera name="side" mode="trackcom" pos="0 -4.5 0.6" xyaxes="1 0 0 0 0.25 1"/>"""
 RENDER_COLOURS = {"rail": "0.15 0.15 0.2 1", "cart": "0.85 0.45 0.15 1", "pole": "0.95 0.8 0.3 1"}
 
 
 def render_xml() -> str:
-    """CARTPOLE_XML with `RENDER_ASSETS`, `RENDER_CAMERA` and `RENDER_COLOURS`: the same bodies and joints."""
-    xml = CARTPOLE_XML.replace("  <worldbody>", RENDER_ASSETS, 1).replace('<body name="cart">', RENDER_CAMERA, 1)
+    """CARTPOLE_XML dressed for videos (`video_scene`, `RENDER_CAMERA`, `RENDER_COLOURS`): the same
+    bodies and joints."""
+    from rpo_jax.envs.mjx_support import video_scene
+
+    xml = CARTPOLE_XML.replace("  <worldbody>", video_scene(RENDER_FLOOR_HEIGHT), 1)
+    xml = xml.replace('<body name="cart">', RENDER_CAMERA, 1)
     for name, rgba in RENDER_COLOURS.items():
         xml = xml.replace(f'<geom name="{name}"', f'<geom name="{name}" rgba="{rgba}"', 1)
     return xml
