@@ -40,7 +40,7 @@ class RunSpec:
     seed: int = 1
     """first seed; seed i of --num-seeds is seed + i"""
     num_seeds: int = 1
-    """seeds trained together in one vmapped program; with --pbt, populations of --population seeds each"""
+    """seeds trained together in one vmapped program; with population-based training, the number of populations"""
     sweep: tyro.conf.UseAppendAction[Annotated[tuple[str, ...], tyro.conf.arg(help=SWEEP_HELP)]] = ()
     log_every: int | None = None
     """write metrics every N updates; None: about 100 lines per seed"""
