@@ -40,9 +40,11 @@ class PopulationJob:
     fields: tuple[str, ...]
 
     def best_variant(self, variant: str) -> str:
+        """The label of the job `variant`'s populations as their best members."""
         return f"{variant} (best of {self.size})"
 
     def mean_variant(self, variant: str) -> str:
+        """The label of the job `variant`'s populations as their members' mean."""
         return f"{variant} (mean of {self.size})"
 
 
@@ -116,6 +118,7 @@ def replicate_rows(rows: Sequence[dict], runs: Runs, jobs: dict[str, PopulationJ
 
 
 def population_labels(populations: Sequence[Sequence[list[dict]]]) -> list[str]:
+    """Each population's name in tables and figures: its number and its seeds."""
     return [
         f"population {number} (seeds {members[0][0]['seed']:g}-{members[-1][0]['seed']:g})"
         for number, members in enumerate(populations)

@@ -4,6 +4,7 @@
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
     python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
     python -m rpo_jax.train --algo rpo --pbt --population 8 --pbt-fields rpo_alpha=0.001:1.0,lr=1e-5:1e-3
+    python -m rpo_jax.train --algo rpo --pbt --population 8 --num-seeds 3  # 3 populations of 8, each evolving on its own
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 

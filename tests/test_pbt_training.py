@@ -157,6 +157,7 @@ TRAIN_POINT_MASS = (
         # 3 populations of 3: 9 runs padded to 10 on 2 devices, population 1 (runs 3-5) on both.
         (["--population", "3", "--num-seeds", "3"], 3),
     ],
+    ids=["one population", "3 populations, one on both devices"],
 )
 def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(tmp_path, populations, steps):
     # One exploit step after update 2 of 3; the 2-device run in a process of its own, whose CPU
