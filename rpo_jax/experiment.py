@@ -68,8 +68,8 @@ RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
 @dataclasses.dataclass(frozen=True)
 class Job:
     """One training run per environment: `algo` with config fields of its own, and optionally
-    one swept hyperparameter whose values become variants of their own, or a population of that
-    many members (population-based training over `pbt_fields`, `rpo_jax.pbt`) instead of seeds."""
+    one swept hyperparameter whose values become variants of their own, or populations of that
+    many members (population-based training over `pbt_fields`, `rpo_jax.pbt`): one per seed of --num-seeds."""
 
     name: str
     algo: str
@@ -307,8 +307,6 @@ def job_run(definition: dict, job: Job, directory: Path | None) -> RunSpec:
     """The spec of `job`'s run in `directory`."""
     names = (field.name for field in dataclasses.fields(RunSpec))  # eval_every and RECORDED_WHERE_GIVEN's may be absent
     given = {name: definition[name] for name in names if name in definition}
-    if job.population:  # the population's members are its runs
-        given["num_seeds"] = 1
     return RunSpec(out=directory, sweep=tuple(job.sweep_specs()), **given)
 
 

@@ -18,6 +18,9 @@ SUFFIXES = (".png", ".pdf")  # what `_save` writes of each figure
 # A logged update in which no episode finished repeats the last finished episodes' return and
 # length (`ppo.Metrics`): such points are not measurements and are left out of the curves.
 EPISODE_METRICS = ("episode_return", "episode_length")
+# Colour families of populations (matplotlib's sequential colour maps): population k's members
+# are shades of FAMILIES[k].
+FAMILIES = ("Blues", "Oranges", "Greens", "Purples", "Reds", "Greys")
 CURVES_CAPTION = (
     "Lines: mean over seeds (n seeds per curve in the legend); bands: {confidence:.0%} bootstrap confidence "
     "interval of the mean ({resamples} resamples); thin lines: the single seeds, where too few (< {needed}) for "
@@ -108,10 +111,7 @@ def curves(
     for label, value in (marks or {}).items():
         axes[0][0].axhline(value, color=colours[label], linestyle="--", linewidth=1, label=f"{label}: reference")
     for axis, (_, label) in zip(axes[0], metrics):
-        axis.set_xlabel("environment steps")
-        axis.xaxis.set_major_formatter(plain_steps)
-        axis.set_ylabel(label)
-        axis.grid(alpha=0.3)
+        _steps_axis(axis, label)
     axes[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(title)
     caption = CURVES_CAPTION.format(
@@ -119,6 +119,69 @@ def curves(
     )
     fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=7, wrap=True)
     return _save(fig, path, rect=(0, 0.06, 1, 1))
+
+
+def _steps_axis(axis: Any, label: str) -> None:
+    """A panel against environment steps: plain step ticks, `label` on the y-axis and a light grid."""
+    axis.set_xlabel("environment steps")
+    axis.xaxis.set_major_formatter(plain_steps)
+    axis.set_ylabel(label)
+    axis.grid(alpha=0.3)
+
+
+def shade(population: int, member: int, size: int) -> Any:
+    """Member `member` of a population of `size`: a shade of the population's colour family
+    (`FAMILIES`), so that members of one population read as one group."""
+    family = pyplot().get_cmap(FAMILIES[population % len(FAMILIES)])
+    return family(0.4 + 0.5 * member / max(1, size - 1))
+
+
+def schedules(
+    path: Path, title: str, populations: Sequence[Sequence[list[dict]]], labels: Sequence[str], fields: Sequence[str],
+    log_scale: Sequence[str],
+) -> str:  # fmt: skip
+    """One panel per explored hyperparameter in `fields`: each member's value (its rows' column,
+    runs in update order) against environment steps, a population's members in one colour
+    family named by `labels` in the legend; a log y-axis for the fields in `log_scale`."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(fields), figsize=(6 * len(fields), 4.4), squeeze=False)
+    for axis, field in zip(axes[0], fields):
+        for number, members in enumerate(populations):
+            for index, run in enumerate(members):
+                steps, values = [row["env_steps"] for row in run], [row[field] for row in run]
+                axis.plot(steps, values, color=shade(number, index, len(members)), linewidth=1, drawstyle="steps-post")
+        if field in log_scale:
+            axis.set_yscale("log")
+        _steps_axis(axis, field + (" (log scale)" if field in log_scale else ""))
+    for number, label in enumerate(labels):  # one legend entry per population, in its family's darkest shade
+        axes[0][0].plot([], [], color=shade(number, 1, 1), label=label)
+    axes[0][0].legend(fontsize=8, loc="best")
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def population_returns(
+    path: Path, title: str, populations: Sequence[Sequence[list[dict]]], labels: Sequence[str], best: Sequence[int]
+) -> str:  # fmt: skip
+    """One panel per population (`labels` their titles): each member's episode return against
+    environment steps in the population's colour family, the member `best[k]` drawn thick and
+    named in the legend. Only updates in which the member finished an episode are drawn."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(populations), figsize=(5.5 * len(populations), 4.4), squeeze=False)
+    for number, (axis, members, label) in enumerate(zip(axes[0], populations, labels)):
+        for index, run in enumerate(members):
+            steps, values = finished_points([run], "episode_return")
+            chosen = index == best[number]
+            axis.plot(
+                steps, values[0], color="black" if chosen else shade(number, index, len(members)),
+                linewidth=2.2 if chosen else 0.9, zorder=3 if chosen else 2,
+                label=f"best member (seed {run[0]['seed']:g})" if chosen else None,
+            )  # fmt: skip
+        _steps_axis(axis, "episode return")
+        axis.set_title(label, fontsize=9)
+        axis.legend(fontsize=8, loc="best")
+    fig.suptitle(title)
+    return _save(fig, path)
 
 
 def interval_bars(

@@ -45,6 +45,9 @@ class Hyperparams:
 
 
 SWEEPABLE = tuple(field.name for field in dataclasses.fields(Hyperparams))
+# Hyperparameters that act by their order of magnitude: population-based training draws them
+# log-uniformly (`rpo_jax.pbt`) and the report draws their schedules on a log axis.
+LOG_SCALE = ("rpo_alpha", "lr")
 
 
 def read_by(name: str) -> tuple[str, ...]:

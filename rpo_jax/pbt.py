@@ -2,15 +2,19 @@
 are a population whose worst members copy better ones and explore their hyperparameters.
 
     rule = Rule(fields=(("rpo_alpha", 0.001, 1.0), ("lr", 1e-5, 1e-3)), quantile=0.25, explore="perturb")
-    state, donors = step(state, scores, key, rule, members=8)
+    state, donors = step(state, scores, step_keys(seed, 8, 1, update), rule, members=8)
 
-Everything here is a pure array function over the leading population axis [P] of a vmapped
+Everything here is a pure array function over the leading run axis [P] of a vmapped
 `ppo.TrainState`, jittable with `rule` and `members` static: exploit and explore run on the
 devices, between chunks, without recompiling the chunk (the hyperparameters are arrays of the
 state). A member that exploits copies its donor's parameters, optimiser state, hyperparameters
 and normalisers' statistics; it keeps its own environments (a host-side simulator pool belongs
 to one member), observations, key, update count and episode returns, so that every member keeps
 its own random stream and the population stays one of P distinct runs.
+
+Several populations train side by side as K consecutive blocks of N members (runs k*N to
+k*N + N - 1 are population k): each evolves within itself, from keys of its own (`step_keys`),
+and population k evolves as the one population of seed `seed + k*N` would alone.
 """
 
 from __future__ import annotations
@@ -25,13 +29,12 @@ import jax.numpy as jnp
 from rpo_jax import envs, ppo
 from rpo_jax.config import SWEEPABLE, check_applies
 from rpo_jax.errors import UsageError
+from rpo_jax.hyperparams import LOG_SCALE
 
 EXPLORE_RULES = ("perturb", "resample")
 # Perturbation multiplies a value by one of these, each as likely (the paper's 0.8 and 1.2; 1.25
 # undoes 0.8, so that a value perturbed both ways comes back).
 PERTURB_FACTORS = (0.8, 1.25)
-# Hyperparameters that act by their order of magnitude: resampled uniformly in their logarithm.
-LOG_SCALE = ("rpo_alpha", "lr")
 # Streams of the population's keys, apart from training's and evaluation's.
 INIT_STREAM, STEP_STREAM = 0x9B70, 0x9B71
 
@@ -82,17 +85,28 @@ def resample(key: jax.Array, rule: Rule, shape: tuple[int, ...]) -> dict[str, ja
     return {name: jnp.clip(value, low, high) for (name, low, high), value in zip(rule.fields, drawn.values())}
 
 
-def initial_hyperparameters(seed: int, members: int, rule: Rule) -> list[dict[str, float]]:
-    """Each member's starting values of the explored fields, drawn by `resample` from the seed."""
-    key = jax.random.fold_in(jax.random.PRNGKey(seed), INIT_STREAM)
-    drawn = jax.device_get(resample(key, rule, (members,)))
-    return [{name: float(values[member]) for name, values in drawn.items()} for member in range(members)]
+def initial_hyperparameters(seed: int, members: int, rule: Rule, populations: int = 1) -> list[dict[str, float]]:
+    """Each member's starting values of the explored fields: population k's (members // populations
+    of them) drawn by `resample` from its first seed, seed + k * (members // populations)."""
+    size = members // populations
+    drawn = []
+    for first in range(seed, seed + members, size):
+        key = jax.random.fold_in(jax.random.PRNGKey(first), INIT_STREAM)
+        values = jax.device_get(resample(key, rule, (size,)))
+        drawn += [{name: float(column[member]) for name, column in values.items()} for member in range(size)]
+    return drawn
 
 
 def step_key(seed: int, update: int) -> jax.Array:
     """The key of the exploit/explore step after `update`: from the population's seed and the
     update count alone, so that a resumed run draws what the uninterrupted one drew."""
     return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), STEP_STREAM), update)
+
+
+def step_keys(seed: int, members: int, populations: int, update: jax.Array | int) -> jax.Array:
+    """[populations] keys: population k's `step_key` from its first seed, seed + k * (members // populations)."""
+    size = members // populations
+    return jnp.stack([step_key(first, update) for first in range(seed, seed + members, size)])
 
 
 def choose_donors(scores: jax.Array, key: jax.Array, quantile: float) -> jax.Array:
@@ -106,6 +120,16 @@ def choose_donors(scores: jax.Array, key: jax.Array, quantile: float) -> jax.Arr
     order = jnp.argsort(-jnp.nan_to_num(scores, nan=-jnp.inf), stable=True).astype(jnp.int32)
     picks = jax.random.randint(key, (count,), 0, count)
     return own.at[order[members - count :]].set(order[:count][picks])
+
+
+def choose_population_donors(scores: jax.Array, keys: jax.Array, quantile: float) -> jax.Array:
+    """scores [K * N] of K populations of N, keys [K] -> donors [K * N] int32, run indices: each
+    population's `choose_donors` with its own key, so that no member copies another population's."""
+    populations = keys.shape[0]
+    by_population = scores.reshape(populations, -1)
+    local = jax.vmap(choose_donors, in_axes=(0, 0, None))(by_population, keys, quantile)
+    first = jnp.arange(populations, dtype=jnp.int32)[:, None] * by_population.shape[1]
+    return (local + first).reshape(-1)
 
 
 def exploit(state: ppo.TrainState, donors: jax.Array) -> ppo.TrainState:
@@ -143,18 +167,22 @@ def explore(hparams: ppo.Hyperparams, moved: jax.Array, key: jax.Array, rule: Ru
     return dataclasses.replace(hparams, **{name: jnp.where(moved, value, getattr(hparams, name)) for name, value in new.items()})
 
 
-def step(state: ppo.TrainState, scores: jax.Array, key: jax.Array, rule: Rule, members: int) -> tuple[ppo.TrainState, jax.Array]:
+def step(state: ppo.TrainState, scores: jax.Array, keys: jax.Array, rule: Rule, members: int) -> tuple[ppo.TrainState, jax.Array]:
     """One exploit/explore step of the first `members` of `state` [P, ...] (the others, padding,
-    are left alone) scored by `scores` [members or more]. Returns the state and donors [members]. The optimiser's
+    are left alone), K = len(`keys`) populations of members // K, each with its key [K], scored by
+    `scores` [members or more]. Returns the state and donors [members], run indices. The optimiser's
     learning rate of a member that moved is its donor's scaled by the change of `lr`, so that a
     schedule's progress (linear, adaptive) carries over and the new `lr` takes effect."""
-    donor_key, explore_key = jax.random.split(key)
-    donors = choose_donors(scores[:members], donor_key, rule.quantile)
+    split = jax.vmap(jax.random.split)(keys)
+    donors = choose_population_donors(scores[:members], split[:, 0], rule.quantile)
     total = state.update.shape[0]
     padded = jnp.concatenate([donors, jnp.arange(members, total, dtype=jnp.int32)])
     copied = exploit(state, padded)
     moved = padded != jnp.arange(total)
-    hparams = explore(copied.hparams, moved, explore_key, rule)
+    # Each population explores its own members with its own key, whatever pads the runs.
+    by_population = jax.tree.map(lambda leaf: leaf[:members].reshape(keys.shape[0], -1), (copied.hparams, moved[:members]))
+    explored = jax.vmap(lambda own, own_moved, key: explore(own, own_moved, key, rule))(*by_population, split[:, 1])
+    hparams = jax.tree.map(lambda new, old: jnp.concatenate([new.reshape(-1), old[members:]]), explored, copied.hparams)
     ratio = jnp.where(copied.hparams.lr > 0, hparams.lr / copied.hparams.lr, 1.0)
     opt_state = ppo.set_learning_rate(copied.opt_state, copied.opt_state.hyperparams["learning_rate"] * ratio)
     return copied.replace(hparams=hparams, opt_state=opt_state), donors

@@ -115,6 +115,11 @@ class RunPlan:
         return pbt.Rule(fields, self.pbt["pbt_quantile"], self.pbt["pbt_explore"])
 
     @property
+    def populations(self) -> int:
+        """Independent populations of `pbt["population"]` members each (--num-seeds with --pbt); 1 without PBT."""
+        return self.num_seeds // self.pbt["population"] if self.pbt else 1
+
+    @property
     def pbt_updates(self) -> int | None:
         """Updates between exploit/explore steps; None without population-based training."""
         return max(1, self.pbt["pbt_every"] // self.config.batch_size) if self.pbt else None
@@ -131,16 +136,16 @@ def new_plan(
     """A plan for the new run directory `run.out` on `processes`' devices (None: all of this
     process's), checked before anything is written. `grid`: what `check_new` returned for the
     same arguments, where the caller checked them first (an experiment, all its runs), so that
-    they are checked once. With `population` (its --pbt on), the runs are a population of that
-    many seeds."""
+    they are checked once. With `population` (its --pbt on), the runs are `run.num_seeds`
+    populations of that many seeds each."""
     processes = processes or Processes()
     grid = check_new(env, config, run) if grid is None else grid  # the config checked before its sizes are used
     run_steps = config.num_updates * config.batch_size
     evolution = pbt_record(population, run, run_steps)
     if evolution:
-        run = dataclasses.replace(run, num_seeds=evolution["population"])
+        run = dataclasses.replace(run, num_seeds=run.num_seeds * evolution["population"])
         check_seeds(run.seed, run.num_seeds)
-        check_pbt(evolution, config)
+        check_pbt(evolution, config, run.num_seeds)
     if is_primary():  # the one process that writes it (the others may find it begun)
         if not RunDir(run.out).is_new():
             raise UsageError(f"--out {run.out} already exists and is not an empty directory; choose a new one or --resume it")
@@ -160,21 +165,23 @@ def new_plan(
 
 def pbt_record(population: Pbt | None, run: RunSpec, run_steps: int) -> dict[str, Any] | None:
     """What config.json records of population-based training (None: off): the `Pbt` flags, with
-    --pbt-every's default resolved. The population is the command's runs: no seeds or sweep besides."""
+    --pbt-every's default resolved. The populations are the command's runs: no sweep besides."""
     if population is None or not population.pbt:
         return None
-    if run.num_seeds != 1 or run.sweep:
-        raise UsageError("--pbt trains --population seeds as one population; give no --num-seeds or --sweep with it")
+    if run.sweep:
+        raise UsageError("--pbt trains --num-seeds populations of --population seeds each; give no --sweep with it")
     every = run_steps // 10 if population.pbt_every is None else population.pbt_every
     return {**dataclasses.asdict(population), "pbt_every": every}
 
 
-def check_pbt(record: dict[str, Any], config: Config) -> None:
-    """Refuses a bad population-based training record (`pbt_record`'s, or config.json's)."""
+def check_pbt(record: dict[str, Any], config: Config, runs: int) -> None:
+    """Refuses a bad population-based training record (`pbt_record`'s, or config.json's) of `runs` runs."""
     if set(record) != {field.name for field in dataclasses.fields(Pbt)}:
         raise UsageError(f"pbt must hold the fields of --pbt, got {sorted(record)}")
     if not isinstance(record["population"], int) or record["population"] < 2:
         raise UsageError(f"--population must be an integer >= 2, got {record['population']!r}")
+    if runs % record["population"]:
+        raise UsageError(f"num_seeds must be whole populations of {record['population']}, got {runs} runs")
     if not isinstance(record["pbt_every"], int) or record["pbt_every"] < 1:
         raise UsageError(f"--pbt-every must be >= 1 env step per member, got {record['pbt_every']!r}")
     if not isinstance(record["pbt_quantile"], float) or not 0 < record["pbt_quantile"] <= 0.5:
@@ -273,7 +280,7 @@ def resumed_plan(out: Path) -> RunPlan:
     try:
         grid = check_saved_plan(plan, config)
         if plan["pbt"] is not None:
-            check_pbt(plan["pbt"], config)
+            check_pbt(plan["pbt"], config, plan["num_seeds"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
     placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config)
@@ -360,7 +367,7 @@ def describe_runs(plan: RunPlan, grid: list[dict[str, float]]) -> list[dict[str,
     defaults = plan.config.hyperparameters()
     rule = plan.pbt_rule
     if rule:  # each member starts from values of its own within the explored ranges
-        grid = pbt.initial_hyperparameters(plan.seed, plan.num_seeds, rule)
+        grid = pbt.initial_hyperparameters(plan.seed, plan.num_seeds, rule, plan.populations)
         return [{"run": index, "seed": seed, "hparams": {**defaults, **grid[index]}} for index, seed in enumerate(plan.seeds)]
     return [
         {"run": index, "seed": seed, "hparams": {**defaults, **point}}
@@ -386,6 +393,7 @@ def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str
         "env": plan.env,
         "algo": plan.config.algo,
         "seeds": list(plan.seeds),
+        **({"populations": plan.populations} if plan.pbt else {}),
         "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
         "runs": runs,
         "config": dataclasses.asdict(plan.config),

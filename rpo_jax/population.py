@@ -4,8 +4,9 @@ the devices, split as the runs are), and its lineage rows in pbt.jsonl.
 
 The score of a member is its last evaluation's return where the run evaluates (--eval-every) and
 has evaluated, else its mean training return over the chunk that just ended: R numbers from the
-host, where the chunk's metrics are anyway. The step's key comes
-from the run's seed and the update count, so that a resumed run steps as the uninterrupted one.
+host, where the chunk's metrics are anyway. Each population's key comes from its first seed
+and the update count, so that a resumed run steps as the uninterrupted one; with several
+populations (--num-seeds K), members copy only within their own.
 """
 
 from __future__ import annotations
@@ -27,13 +28,13 @@ StepProgram = Callable[[ppo.TrainState, Any, Any], tuple[ppo.TrainState, jax.Arr
 def step_program(plan: RunPlan, placement: Placement, state: ppo.TrainState) -> StepProgram:
     """The compiled step of the population of `plan` (with --pbt) placed as `state`: its output
     lies on the devices as its input did, so the compiled chunk takes it as it is."""
-    rule, members, seed = plan.pbt_rule, plan.num_seeds, plan.seed
+    rule, members, seed, populations = plan.pbt_rule, plan.num_seeds, plan.seed, plan.populations
 
     def run(state: ppo.TrainState, scores: jax.Array, update: jax.Array) -> tuple[ppo.TrainState, jax.Array]:
-        key = pbt.step_key(seed, update)
+        keys = pbt.step_keys(seed, members, populations, update)
         if placement.kind != "envs":  # data-parallel states are stacked [D, R, ...], the same on every device
-            return pbt.step(state, scores, key, rule, members)
-        state, donors = jax.vmap(lambda own: pbt.step(own, scores, key, rule, members))(state)
+            return pbt.step(state, scores, keys, rule, members)
+        state, donors = jax.vmap(lambda own: pbt.step(own, scores, keys, rule, members))(state)
         return state, donors[0]
 
     shardings = jax.tree.map(lambda leaf: leaf.sharding, state)
@@ -63,8 +64,10 @@ def evolve(
     donors = np.asarray(jax.device_get(donors))
     before = [dict(run["hparams"]) for run in runs]
     update_hyperparameters(placement, state, runs)
+    size = plan.pbt["population"]
     rows = [
-        {"update": update, "member": member, "donor": int(donor), "old": before[member], "new": runs[member]["hparams"]}
+        {"update": update, "population": member // size, "member": member, "donor": int(donor),
+         "old": before[member], "new": runs[member]["hparams"]}
         for member, donor in enumerate(donors) if donor != member
     ]  # fmt: skip
     if rows and is_primary():
@@ -84,3 +87,8 @@ def best_member(runs: list[dict[str, Any]]) -> int:
     evaluated (summarised), else its final training return."""
     score = "eval_return" if "eval_return" in runs[0] else "final_return"
     return int(np.argmax([run[score] for run in runs]))
+
+
+def best_members(runs: list[dict[str, Any]], size: int) -> list[int]:
+    """The run index of each population's `best_member`, the populations being `runs` in blocks of `size`."""
+    return [first + best_member(runs[first : first + size]) for first in range(0, len(runs), size)]

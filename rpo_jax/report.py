@@ -28,7 +28,7 @@ from typing import Annotated, Iterable, Sequence
 import numpy as np
 import tyro
 
-from rpo_jax import aggregate, figures, reference, tables
+from rpo_jax import aggregate, figures, pbt_report, reference, tables
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
@@ -238,20 +238,24 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     """Writes out/report.md and out/figures/ from the results in `directories`, beside the
     published figures in `reference_file` where given."""
     published = reference.read(reference_file) if reference_file else {}
-    rows = []
+    rows, jobs = [], {}
     for directory in directories:
+        prefix = f"{directory.name}: " if len(directories) > 1 else ""
+        jobs.update(pbt_report.population_jobs(directory, prefix))
         for row in read_results(directory):
-            if len(directories) > 1:
-                row["variant"] = f"{directory.name}: {row['variant']}"
+            row["variant"] = prefix + row["variant"]
             rows.append(row)
     check_out(out)
     out.mkdir(parents=True, exist_ok=True)
+    members = group_runs(rows) if jobs else {}  # a population job's runs, before they become populations
+    rows = pbt_report.replicate_rows(rows, members, jobs)
     summary = summarise(rows)
     scores = normalised_scores(summary)
     envs = unique(row["env"] for row in rows)
     variants = unique(row["variant"] for row in rows)
     algos = {row["variant"]: row["algo"] for row in rows}
     figure_files = write_figures(rows, scores, out / FIGURES_DIR, published) if rows else []
+    figure_files += pbt_report.write_figures(members, jobs, out / FIGURES_DIR)
     written = [f"{FIGURES_DIR}/{name}" for name in figure_files]
     experiments = unique(row["experiment"] for row in rows)
     seeds = sorted({s["seeds"] for s in summary.values()})
@@ -267,6 +271,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         *tables.result_tables(summary, envs, variants),
         *reference.section(summary, published, algos, tables.cell),
         *tables.aggregate_section(envs, aggregates(scores, variants), improvements(scores, variants, algos)),
+        *pbt_report.section(members, jobs),
         *(f"![{name}]({name})" for name in written),
         "",
     ]

@@ -197,6 +197,7 @@ def train_locked(
     summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
     if plan.pbt:
         summary["best_member"] = population.best_member(runs)
+        summary["best_members"] = population.best_members(runs, plan.pbt["population"])  # one per population
     if primary:
         run_dir.write_params(params_bytes(params, obs_stats))
         run_dir.write_summary(summary)

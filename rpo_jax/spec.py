@@ -40,7 +40,7 @@ class RunSpec:
     seed: int = 1
     """first seed; seed i of --num-seeds is seed + i"""
     num_seeds: int = 1
-    """seeds trained together in one vmapped program"""
+    """seeds trained together in one vmapped program; with population-based training, the number of populations"""
     sweep: tyro.conf.UseAppendAction[Annotated[tuple[str, ...], tyro.conf.arg(help=SWEEP_HELP)]] = ()
     log_every: int | None = None
     """write metrics every N updates; None: about 100 lines per seed"""
@@ -63,7 +63,8 @@ class Pbt:
     better ones and explore their hyperparameters between chunks (`rpo_jax.pbt`)."""
 
     pbt: bool = False
-    """train --population runs (seeds seed, seed + 1, ...) as one population (population-based training)"""
+    """train --num-seeds populations of --population runs each (seeds seed, seed + 1, ...), each evolving on its own
+    (population-based training)"""
     population: int = 8
     """members of the population, trained together in one program, with --pbt"""
     pbt_every: int | None = None

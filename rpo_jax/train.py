@@ -4,6 +4,7 @@
     python -m rpo_jax.train --env cartpole --algo ppo --preset isaacgym --num-seeds 4
     python -m rpo_jax.train --algo rpo --dist laplace --num-seeds 3 --sweep rpo_alpha=0.001,0.5,1000
     python -m rpo_jax.train --algo rpo --pbt --population 8 --pbt-fields rpo_alpha=0.001:1.0,lr=1e-5:1e-3
+    python -m rpo_jax.train --algo rpo --pbt --population 8 --num-seeds 3  # 3 populations of 8, each evolving on its own
     python -m rpo_jax.train --resume runs/cartpole-rpo-20261123-101500
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
@@ -91,7 +92,9 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     if args.resume:
         plan = plans.resumed_plan(args.resume)
         population = plan.pbt or dataclasses.asdict(Pbt())
-        check_resume(args, given, {**plans.plan_record(plan), **population, **dataclasses.asdict(plan.config)})
+        # --num-seeds with --pbt counts populations; the plan counts their members.
+        seeds = {"num_seeds": plan.populations} if plan.pbt else {}
+        check_resume(args, given, {**plans.plan_record(plan), **population, **seeds, **dataclasses.asdict(plan.config)})
         return dataclasses.replace(plan, allow_relayout=args.processes.allow_relayout)
     if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
@@ -122,6 +125,12 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
         progress.close()
 
 
+def member_line(run: dict[str, Any], with_hparams: bool) -> str:
+    """A population member's run, seed and final return, and where asked the hyperparameters it ends with."""
+    now = " ".join(f"{name}={value:.3g}" for name, value in run["hparams"].items()) if with_hparams else ""
+    return f"run {run['run']} (seed {run['seed']}), final return {run['final_return']:.2f}" + (f", now {now}" if now else "")
+
+
 def print_summary(summary: dict[str, Any]) -> None:
     for point in summary["grid"]:
         label = "".join(f" {k}={v:g}" for k, v in point["hparams"].items())
@@ -131,9 +140,10 @@ def print_summary(summary: dict[str, Any]) -> None:
         spread = with_spread("", " (mean ± sample std)", seeds)
         print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated}{spread} over {seeds} seed(s)")
     if "best_member" in summary:
-        best = summary["runs"][summary["best_member"]]
-        now = " ".join(f"{name}={value:.3g}" for name, value in best["hparams"].items())
-        print(f"best member: run {best['run']} (seed {best['seed']}), final return {best['final_return']:.2f}, now {now}")
+        populations = summary.get("best_members", [])
+        for number, member in enumerate(populations if len(populations) > 1 else []):
+            print(f"population {number}: {member_line(summary['runs'][member], with_hparams=False)}")
+        print(f"best member: {member_line(summary['runs'][summary['best_member']], with_hparams=True)}")
     print(
         f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
         f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"

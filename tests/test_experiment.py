@@ -83,7 +83,8 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
         variants = []
         for job in spec.jobs:
             plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name)
-            assert plan.num_seeds == (job.population or 10) and plan.config.num_envs == 512  # the isaacgym preset
+            assert plan.num_seeds == (job.population or 1) * 10 and plan.config.num_envs == 512  # the isaacgym preset
+            assert plan.populations == (10 if job.population else 1)  # a population per seed
             assert plan.config.algo == job.algo
             grid = plan_module.parse_sweeps(plan.sweep, plan.config)
             variants += [job.variant(run["hparams"]) for run in plan_module.describe_runs(plan, grid)]

@@ -101,7 +101,8 @@ def test_explore_stays_within_ranges_and_moves_only_the_chosen_members(populatio
 
 def lineage(state, seed, update):
     scores = state.last_episode_return
-    new, donors = jax.jit(pbt.step, static_argnames=("rule", "members"))(state, scores, pbt.step_key(seed, update), RULE, MEMBERS)
+    keys = pbt.step_keys(seed, MEMBERS, 1, update)
+    new, donors = jax.jit(pbt.step, static_argnames=("rule", "members"))(state, scores, keys, RULE, MEMBERS)
     return np.asarray(donors), {name: np.asarray(getattr(new.hparams, name)) for name, _, _ in RULE.fields}, new
 
 
@@ -119,6 +120,34 @@ def test_the_same_key_gives_the_same_lineage(population):
     donor_rate = np.asarray(population.opt_state.hyperparams["learning_rate"])[donors]
     donor_lr = np.asarray(population.hparams.lr)[donors]
     np.testing.assert_allclose(learning_rate, donor_rate * hparams["lr"] / donor_lr, rtol=1e-6)
+
+
+def test_populations_evolve_within_themselves_each_as_it_would_alone(population):
+    scores = jnp.asarray([5.0, 1.0, 7.0, 3.0, 0.0, 6.0, 2.0, 4.0])  # 2 populations of 4: runs 0-3 and 4-7
+    step = jax.jit(pbt.step, static_argnames=("rule", "members"))
+    new, donors = step(population, scores, pbt.step_keys(3, MEMBERS, 2, 10), RULE, MEMBERS)
+    # Each population's worst copies its own best, though run 2 is better than all of the second's.
+    assert list(np.asarray(donors)) == [0, 2, 2, 3, 5, 5, 6, 7]
+    explored = {name: np.asarray(getattr(new.hparams, name)) for name, _, _ in RULE.fields}
+    before = {name: np.asarray(getattr(population.hparams, name)) for name, _, _ in RULE.fields}
+    assert all(np.array_equal(explored[n][[0, 2, 3, 5, 6, 7]], before[n][[0, 2, 3, 5, 6, 7]]) for n in explored)
+    # Population 1 steps as the one population of its first seed (3 + 4) would alone, on its own runs.
+    own = jax.tree.map(lambda leaf: leaf[4:], population)
+    alone, alone_donors = step(own, scores[4:], pbt.step_keys(7, 4, 1, 10), RULE, 4)
+    assert list(np.asarray(alone_donors) + 4) == list(np.asarray(donors)[4:])
+    assert all(np.array_equal(np.asarray(getattr(alone.hparams, n)), explored[n][4:]) for n in explored)
+    assert all(same((new.params, 4 + member), (alone.params, member)) for member in range(4))
+    # A population's lineage depends on its own scores alone: the other's scores changed, its draws stay.
+    shuffled = scores.at[:4].set(jnp.asarray([0.0, 9.0, 8.0, 7.0]))
+    again, again_donors = step(population, shuffled, pbt.step_keys(3, MEMBERS, 2, 10), RULE, MEMBERS)
+    assert list(np.asarray(again_donors)[4:]) == list(np.asarray(donors)[4:]) and np.asarray(again_donors)[0] == 1
+    assert all(np.array_equal(np.asarray(getattr(again.hparams, n))[4:], explored[n][4:]) for n in explored)
+
+
+def test_initial_hyperparameters_of_populations_are_each_their_first_seeds():
+    drawn = pbt.initial_hyperparameters(3, 3 * 4, RULE, populations=3)
+    assert drawn == [point for first in (3, 7, 11) for point in pbt.initial_hyperparameters(first, 4, RULE)]
+    assert drawn[:MEMBERS] != pbt.initial_hyperparameters(3, MEMBERS, RULE)  # not one population of 8
 
 
 @pytest.mark.parametrize(

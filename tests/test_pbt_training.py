@@ -1,6 +1,7 @@
 """Population-based training through the command line (--pbt): the lineage and the rows record the
-members' hyperparameters, a killed population resumes bit for bit, 2 devices agree with 1, host-side
-environments train, the best member is the default policy, and bad flags are one line."""
+members' hyperparameters, several populations (--num-seeds) evolve each within itself, a killed
+population resumes bit for bit, 2 devices agree with 1, host-side environments train, the best
+member is the default policy, and bad flags are one line."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ from point_mass import PointMass
 from test_devices import ROOT, params_of
 from test_host import SPEC, host_point_mass
 
-from rpo_jax import envs, experiment, export, policy, train
+from rpo_jax import envs, experiment, export, pbt, policy, train
 from rpo_jax.rundir import PARAMS_FILE, SUMMARY_FILE, RunDir
+from rpo_jax.spec import Pbt
 
 NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
 BATCH = NUM_ENVS * NUM_STEPS
@@ -54,6 +56,31 @@ def finished(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def populations(tmp_path_factory) -> Path:
+    """2 populations of 4 (runs 0-3, seeds 1-4, and runs 4-7, seeds 5-8) trained to the end as `finished`."""
+    out = tmp_path_factory.mktemp("pbt") / "populations"
+    assert train.main([*COMMAND, "--num-seeds", "2", "--out", str(out), "--checkpoint-every", str(7 * BATCH)]) == 0
+    return out
+
+
+def test_populations_copy_only_within_themselves_each_from_its_own_start(populations):
+    lineage = RunDir(populations).read_lineage()
+    assert sorted((row["update"], row["population"]) for row in lineage) == [(u, k) for u in (4, 8, 12, 16) for k in (0, 1)]
+    assert all(row["member"] // 4 == row["donor"] // 4 == row["population"] for row in lineage)
+    config = json.loads((populations / "config.json").read_text())
+    assert config["populations"] == 2 and config["plan"]["num_seeds"] == 8 and config["seeds"] == list(range(1, 9))
+    rule = pbt.Rule(pbt.parse_fields(Pbt.pbt_fields, "rpo"))
+    for first, runs in ((1, config["runs"][:4]), (5, config["runs"][4:])):  # as the population of its first seed alone
+        assert [{name: run["hparams"][name] for name in ("rpo_alpha", "lr")} for run in runs] == pbt.initial_hyperparameters(
+            first, 4, rule
+        )  # fmt: skip
+    summary = RunDir(populations).read_summary()
+    finals = [run["final_return"] for run in summary["runs"]]
+    assert summary["best_members"] == [int(np.argmax(finals[:4])), 4 + int(np.argmax(finals[4:]))]
+    assert summary["best_member"] == int(np.argmax(finals))  # the default policy: the best of all
+
+
 def test_the_lineage_and_the_rows_follow_the_members_hyperparameters(finished):
     lineage = RunDir(finished).read_lineage()
     assert [row["update"] for row in lineage] == [4, 8, 12, 16]  # one of 4 members copies at each step
@@ -69,14 +96,23 @@ def test_the_lineage_and_the_rows_follow_the_members_hyperparameters(finished):
     assert config["plan"]["pbt"]["population"] == 4 and len({run["hparams"]["lr"] for run in config["runs"]}) == 4
 
 
-def test_a_killed_and_resumed_population_ends_as_the_uninterrupted_one(finished, tmp_path, capsys):
+@pytest.mark.parametrize(
+    "trained, flags, wrong",
+    [
+        ("finished", ["--pbt", "--population", "4"], ["--population", "5"]),
+        ("populations", ["--pbt", "--num-seeds", "2"], ["--num-seeds", "3"]),
+    ],
+)
+def test_a_killed_and_resumed_population_ends_as_the_uninterrupted_one(request, trained, flags, wrong, tmp_path, capsys):
+    finished = request.getfixturevalue(trained)
     out = tmp_path / "killed"
     shutil.copytree(finished, out)  # as if killed after its checkpoint at update 14, with rows and lineage past it
     (out / SUMMARY_FILE).unlink()
     (out / PARAMS_FILE).unlink()
-    assert train.main(["--resume", str(out), "--population", "5"]) == 2
-    assert f"--resume {out}: the run was made with --population 4, not 5" in capsys.readouterr().err
-    assert train.main(["--resume", str(out), "--pbt", "--population", "4", "--quiet"]) == 0
+    assert train.main(["--resume", str(out), *wrong]) == 2
+    given = " ".join(wrong).replace(wrong[1], f"{flags[2]}, not {wrong[1]}")
+    assert f"--resume {out}: the run was made with {given}" in capsys.readouterr().err
+    assert train.main(["--resume", str(out), *flags, "--quiet"]) == 0
     assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
     assert without_sps(out) == without_sps(finished)
     assert RunDir(out).read_lineage() == RunDir(finished).read_lineage()  # the step at 16 drawn again, the same
@@ -114,10 +150,19 @@ TRAIN_POINT_MASS = (
 )
 
 
-def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(tmp_path):
+@pytest.mark.parametrize(
+    "populations, steps",
+    [
+        (["--population", "4"], 1),
+        # 3 populations of 3: 9 runs padded to 10 on 2 devices, population 1 (runs 3-5) on both.
+        (["--population", "3", "--num-seeds", "3"], 3),
+    ],
+    ids=["one population", "3 populations, one on both devices"],
+)
+def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(tmp_path, populations, steps):
     # One exploit step after update 2 of 3; the 2-device run in a process of its own, whose CPU
     # --cpu-devices splits before JAX starts.
-    flags = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(3 * BATCH), *POPULATION[:3], "--pbt-every"]
+    flags = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(3 * BATCH), "--pbt", *populations, "--pbt-every"]
     flags += [str(2 * BATCH), "--quiet"]
     assert train.main([*flags, "--out", str(tmp_path / "d1")]) == 0
     environment = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
@@ -125,10 +170,11 @@ def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(t
     result = subprocess.run([*command, "--out", str(tmp_path / "d2")], env=environment, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-3000:]
     lineage, split = RunDir(tmp_path / "d1").read_lineage(), RunDir(tmp_path / "d2").read_lineage()
-    assert len(lineage) == 1 and lineage[0]["update"] == 2
+    assert len(lineage) == steps and {row["update"] for row in lineage} == {2}
     assert [(r["member"], r["donor"]) for r in split] == [(r["member"], r["donor"]) for r in lineage]
-    for name in ("old", "new"):
-        np.testing.assert_allclose(list(split[0][name].values()), list(lineage[0][name].values()), rtol=1e-6)
+    for ours, theirs in zip(split, lineage, strict=True):
+        for name in ("old", "new"):
+            np.testing.assert_allclose(list(ours[name].values()), list(theirs[name].values()), rtol=1e-6)
     for a, b in zip(params_of(tmp_path / "d2"), params_of(tmp_path / "d1"), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
     assert RunDir(tmp_path / "d2").read_summary()["devices"] == 2
@@ -142,8 +188,8 @@ def test_a_population_split_over_2_devices_agrees_with_1_after_an_exploit_step(t
         (["--pbt", "--pbt-every", "0"], "--pbt-every must be >= 1"),
         (["--pbt", "--pbt-fields", "alpha=0.1:1"], "--pbt-fields alpha=0.1:1: unknown field 'alpha'"),
         (["--pbt", "--pbt-fields", "lr=1e-3:1e-5"], "the range must have 0 < LOW < HIGH"),
-        (["--pbt", "--num-seeds", "2"], "give no --num-seeds or --sweep with it"),
-        (["--pbt", "--sweep", "lr=1e-4,3e-4"], "give no --num-seeds or --sweep with it"),
+        (["--pbt", "--num-seeds", "2", "--sweep", "lr=1e-4,3e-4"], "give no --sweep with it"),
+        (["--pbt", "--sweep", "lr=1e-4,3e-4"], "give no --sweep with it"),
         (["--population", "4"], "--population: population flags, which apply with --pbt only"),
         (["--pbt", "--pbt-explore", "mutate"], "--pbt-explore"),
         (["--pbt", "--algo", "ppo"], "--pbt-fields rpo_alpha applies to --algo rpo only"),
@@ -164,6 +210,11 @@ def test_the_pbt_alpha_experiment_trains_a_population_beside_fixed_alphas(tmp_pa
     with open(out / "results.csv", newline="") as file:
         runs = {(row["variant"], row["seed"]) for row in csv.DictReader(file)}
     assert sorted(seed for variant, seed in runs if variant == "rpo-0.01") == ["1", "2"]
-    assert len([seed for variant, seed in runs if variant == "pbt"]) == 8  # the population's members
+    assert len([seed for variant, seed in runs if variant == "pbt"]) == 16  # 2 populations' members
     population = RunDir(out / "runs" / "test_point_mass" / "pbt")
-    assert population.read_lineage() and population.read_summary()["best_member"] in range(8)
+    assert {row["population"] for row in population.read_lineage()} == {0, 1}
+    assert len(population.read_summary()["best_members"]) == 2
+    text = (out / "report.md").read_text()  # the populations as the report's runs, with their figures
+    assert "| rpo-0.01 | pbt (best of 8) | pbt (mean of 8) |" in text and "## Populations" in text
+    assert (out / "figures" / "test_point_mass-pbt-schedules.pdf").is_file()
+    assert (out / "figures" / "test_point_mass-pbt-returns.png").is_file()
