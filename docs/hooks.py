@@ -9,7 +9,8 @@
 - `reports/<name>/report.md` (with its figures) for every committed report under
   benchmarks/reports/, as `python -m rpo_jax.report` wrote it, and the nav's "Reports" section
   listing them, so a new report needs no edit of mkdocs.yml.
-- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections, grouped by topic.
+- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections, grouped by topic, and the nav's
+  "Benchmarks" section listing the topics that have sections.
 """
 
 from __future__ import annotations
@@ -181,12 +182,21 @@ def reports() -> list[Path]:
 
 
 def on_config(config):
-    """Fills the nav's "Reports" section (empty in mkdocs.yml) with a page per committed report."""
-    sections = [entry for entry in walk_nav(config["nav"] or []) if isinstance(entry, dict) and "Reports" in entry]
-    if len(sections) != 1:
-        raise ValueError(f"mkdocs.yml's nav must hold one 'Reports' section for the reports, found {len(sections)}")
-    sections[0]["Reports"] = [{report.parent.name: f"reports/{report.parent.name}/report.md"} for report in reports()]
+    """Fills the nav's "Reports" and "Benchmarks" sections (empty in mkdocs.yml): a page per
+    committed report, and the benchmarks' index and topic pages."""
+    topics = [topic for topic, sections in results_sections()[1].items() if sections]
+    fill_section(config["nav"] or [], "Benchmarks", [f"benchmarks/{page}.md" for page in ("index", *topics)])
+    pages = [{report.parent.name: f"reports/{report.parent.name}/report.md"} for report in reports()]
+    fill_section(config["nav"] or [], "Reports", pages)
     return config
+
+
+def fill_section(nav: list, title: str, entries: list) -> None:
+    """Sets the nav's one section `title` to `entries`; a nav without it, or with several, is an error."""
+    sections = [entry for entry in walk_nav(nav) if isinstance(entry, dict) and title in entry]
+    if len(sections) != 1:
+        raise ValueError(f"mkdocs.yml's nav must hold one {title!r} section, filled by docs/hooks.py; found {len(sections)}")
+    sections[0][title] = entries
 
 
 def walk_nav(entries: list) -> list:

@@ -32,11 +32,12 @@ def test_the_flag_reference_has_every_command_and_every_config_field_with_its_ty
 
 
 def test_the_reports_navigation_lists_every_committed_report_and_refuses_a_nav_without_its_section():
-    nav = [{"Home": "index.md"}, {"Experiments": ["experiments.md", {"Reports": []}]}]
+    nav = [{"Home": "index.md"}, {"Experiments": ["experiments.md", {"Reports": []}]}, {"Benchmarks": []}]
     hooks.on_config({"nav": nav})
+    assert nav[2]["Benchmarks"][0] == "benchmarks/index.md" and "benchmarks/speed.md" in nav[2]["Benchmarks"]
     listed = nav[1]["Experiments"][1]["Reports"]
     committed = sorted(path.parent.name for path in (ROOT / "benchmarks" / "reports").glob("*/report.md"))
     assert [next(iter(entry)) for entry in listed] == committed and len(committed) >= 10
     assert listed[0] == {committed[0]: f"reports/{committed[0]}/report.md"}
     with pytest.raises(ValueError, match="one 'Reports' section"):
-        hooks.on_config({"nav": [{"Home": "index.md"}]})
+        hooks.on_config({"nav": [{"Home": "index.md"}, {"Benchmarks": []}]})
