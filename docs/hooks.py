@@ -1,23 +1,32 @@
 """MkDocs hooks: the pages and sections that are generated, never written twice.
 
-- `<!-- generate: cli-reference -->` in a page becomes every command's `--help`, taken from the
-  commands themselves (`rpo_jax.__main__.COMMANDS`), so the reference is what the parsers (tyro's
-  dataclasses or argparse) print.
+- `<!-- generate: cli-reference -->` in a page becomes every command's flags (`rpo_jax.__main__.COMMANDS`),
+  a table per group of flags (flag, type, default, help), built by tyro from the dataclass the command
+  parses (its module's `...Args`, nesting `rpo_jax.spec`'s and `rpo_jax.config.Config`); a command
+  without one (`envs`) is shown by its own usage text.
 - `<!-- generate: env-table -->` becomes the registry's environments, one table per suite, from
   the static specs that `python -m rpo_jax.envs` lists.
 - `reports/<name>/report.md` (with its figures) for every committed report under
-  benchmarks/reports/, as `python -m rpo_jax.report` wrote it.
-- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections, grouped by topic.
+  benchmarks/reports/, as `python -m rpo_jax.report` wrote it, and the nav's "Reports" section
+  listing them, so a new report needs no edit of mkdocs.yml.
+- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections, grouped by topic, and the nav's
+  "Benchmarks" section listing the topics that have sections.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import dataclasses
+import html
 import importlib
 import io
 import os
 import re
+import warnings
 from pathlib import Path
+
+import tyro.extras
 
 from mkdocs.structure.files import File, Files
 
@@ -25,6 +34,8 @@ ROOT = Path(__file__).resolve().parent.parent
 REPORTS = ROOT / "benchmarks" / "reports"
 RESULTS = ROOT / "benchmarks" / "RESULTS.md"
 MARKER = re.compile(r"<!-- generate: ([a-z-]+) -->")
+# tyro ends a flag's help with its default, as the command line would take it, or "(required)".
+DEFAULT = re.compile(r"(.*?)(?:\s*\((?:default: (.*)|required)\))?\s*$", re.DOTALL)
 
 # RESULTS.md's sections by a word of their heading; a section that matches none goes to "other".
 TOPICS = {
@@ -49,15 +60,61 @@ def command_help(module_name: str) -> str:
     return "\n".join(line.rstrip() for line in printed.getvalue().strip().splitlines())
 
 
-def cli_reference() -> str:
-    from rpo_jax.__main__ import COMMANDS
+def args_class(module_name: str) -> type | None:
+    """The dataclass that the command's module parses its flags into (`TrainArgs`, ...), or None."""
+    module = importlib.import_module(module_name)
+    found = [
+        value
+        for name, value in vars(module).items()
+        if name.endswith("Args") and dataclasses.is_dataclass(value) and value.__module__ == module.__name__
+    ]
+    if len(found) > 1:
+        raise ValueError(f"{module_name} defines several argument dataclasses: {[cls.__name__ for cls in found]}")
+    return found[0] if found else None
 
-    sections = []
+
+def cell(text: str) -> str:
+    """`text` as one Markdown table cell: one line, its HTML and the table's own characters escaped."""
+    return html.escape(" ".join(text.split()), quote=False).replace("|", "\\|").replace("*", "\\*")
+
+
+def flag_row(action: argparse.Action) -> str:
+    """One flag as a table row: its names, the type tyro reads, its default and its help."""
+    positional = action.dest.rpartition(".")[2].upper().replace("-", "_")
+    names = " ".join(f"`{name}`" for name in action.option_strings) or f"`{positional}` (positional)"
+    kind = "bool" if action.nargs == 0 else f"`{action.metavar}`"
+    help_text, default = DEFAULT.match(action.help or "").groups()
+    if default is None:
+        default = "required" if action.required else ""
+    return f"| {names} | {kind} | {cell(default)} | {cell(help_text)} |"
+
+
+def flag_tables(cls: type, prog: str) -> str:
+    """The flags of the dataclass `cls` as tyro builds them, a table per group (one group per nested dataclass)."""
+    with warnings.catch_warnings():
+        # Deprecated in tyro 1 but kept for documentation tools; the build fails loudly if it goes.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        parser = tyro.extras.get_parser(cls, prog=prog)
+    tables = []
+    for group in parser._action_groups:
+        actions = [action for action in group._group_actions if action.dest != "help"]
+        if not actions:
+            continue
+        about = f"{cell(group.description)}\n\n" if group.description else ""
+        rows = "\n".join(flag_row(action) for action in actions)
+        tables.append(f"**{group.title}**\n\n{about}| flag | type | default | help |\n|---|---|---|---|\n{rows}\n")
+    return "\n".join(tables)
+
+
+def cli_reference() -> str:
+    from rpo_jax.__main__ import COMMANDS, USAGE
+
+    sections = [f"### rpo-jax\n\n```text\n{USAGE}\n```\n"]
     for command, (module_name, about) in COMMANDS.items():
-        sections.append(
-            f"### {command}\n\n`rpo-jax {command}` or `python -m {module_name.removesuffix('.__main__')}`: "
-            f"{about}.\n\n```text\n{command_help(module_name)}\n```\n"
-        )
+        prog = f"python -m {module_name.removesuffix('.__main__')}"
+        cls = args_class(module_name)
+        body = f"{cell(cls.__doc__)}\n\n{flag_tables(cls, prog)}" if cls else f"```text\n{command_help(module_name)}\n```\n"
+        sections.append(f"### {command}\n\n`rpo-jax {command}` or `{prog}`: {about}.\n\n{body}")
     return "\n".join(sections)
 
 
@@ -119,10 +176,43 @@ def benchmark_pages() -> dict[str, str]:
     return pages
 
 
+def reports() -> list[Path]:
+    """The committed reports, benchmarks/reports/<name>/report.md, by name."""
+    return sorted(REPORTS.glob("*/report.md"))
+
+
+def on_config(config):
+    """Fills the nav's "Reports" and "Benchmarks" sections (empty in mkdocs.yml): a page per
+    committed report, and the benchmarks' index and topic pages."""
+    topics = [topic for topic, sections in results_sections()[1].items() if sections]
+    fill_section(config["nav"] or [], "Benchmarks", [f"benchmarks/{page}.md" for page in ("index", *topics)])
+    pages = [{report.parent.name: f"reports/{report.parent.name}/report.md"} for report in reports()]
+    fill_section(config["nav"] or [], "Reports", pages)
+    return config
+
+
+def fill_section(nav: list, title: str, entries: list) -> None:
+    """Sets the nav's one section `title` to `entries`; a nav without it, or with several, is an error."""
+    sections = [entry for entry in walk_nav(nav) if isinstance(entry, dict) and title in entry]
+    if len(sections) != 1:
+        raise ValueError(f"mkdocs.yml's nav must hold one {title!r} section, filled by docs/hooks.py; found {len(sections)}")
+    sections[0][title] = entries
+
+
+def walk_nav(entries: list) -> list:
+    """Every entry of the nav, nested sections' entries included."""
+    found = []
+    for entry in entries:
+        found.append(entry)
+        for value in entry.values() if isinstance(entry, dict) else ():
+            found.extend(walk_nav(value) if isinstance(value, list) else ())
+    return found
+
+
 def on_files(files: Files, config) -> Files:
     for uri, content in benchmark_pages().items():
         files.append(File.generated(config, uri, content=content))
-    for report in sorted(REPORTS.glob("*/report.md")):
+    for report in reports():
         files.append(File.generated(config, f"reports/{report.parent.name}/report.md", content=report.read_text()))
         for figure in sorted((report.parent / "figures").glob("*")):
             files.append(File.generated(config, f"reports/{report.parent.name}/figures/{figure.name}", abs_src_path=str(figure)))

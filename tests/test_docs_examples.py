@@ -14,7 +14,8 @@ one fresh directory (a later block may read the run an earlier one wrote), bash 
 `bash -euo pipefail`, Python blocks with this interpreter, both with the repository on
 PYTHONPATH, the interpreter's directory first on PATH (`python`, `rpo-jax`) and a persistent
 compile cache of their own shared by the pages: compiling is most of an example's time, so pages
-whose examples train the same configuration (README.md's and the first run's) compile it once.
+whose examples train the same configuration (README.md's, the first run's and the library's)
+compile it once. Every page runs in the default suite, so a broken example fails `make test`.
 """
 
 from __future__ import annotations
@@ -84,6 +85,9 @@ def run_example(example: Example, directory: Path, cache: Path) -> subprocess.Co
         "PATH": os.pathsep.join([str(interpreter.parent), os.environ["PATH"]]),
         "XDG_CACHE_HOME": str(cache),  # the command line's compile cache
         "JAX_COMPILATION_CACHE_DIR": str(cache / "rpo_jax" / "jax"),  # the same one for the Python examples
+        # Every program, not only those that took a second to compile: the pages evaluate and
+        # load the same runs, whose small programs add up over a page's processes.
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
     }
     command = (
         ["bash", "-euo", "pipefail", "-c", example.code] if example.language == "bash" else [str(interpreter), "-c", example.code]
@@ -109,17 +113,7 @@ def test_an_override_that_no_longer_matches_is_an_error(tmp_path):
         examples(page)
 
 
-# Pages whose examples the default suite leaves to `pytest -m slow`: each trains several times
-# (about 100 s and 30 s on 2 cores), and tests/test_library.py runs the same library calls.
-SLOW_PAGES = {"docs/library.md", "docs/own-environment.md"}
-
-
-def page_param(page: Path) -> object:
-    name = page.relative_to(ROOT).as_posix()
-    return pytest.param(page, id=name, marks=[pytest.mark.slow] if name in SLOW_PAGES else [])
-
-
-@pytest.mark.parametrize("page", [page_param(page) for page in PAGES if examples(page)])
+@pytest.mark.parametrize("page", [page for page in PAGES if examples(page)], ids=lambda page: page.relative_to(ROOT).as_posix())
 def test_the_examples_of_a_page_run(page, tmp_path, compile_cache):
     for example in examples(page):
         result = run_example(example, tmp_path, compile_cache)
