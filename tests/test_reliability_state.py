@@ -206,6 +206,26 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
     assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
 
 
+def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
+    # TensorBoard's writes made slow (0.25 s after each of the 20 chunks): the sinks' time is
+    # tracking_seconds, and steps/s is as fast as without it.
+    from rpo_jax.sinks import TensorBoardSink
+
+    write = TensorBoardSink.write
+
+    def slow_write(self, rows):
+        write(self, rows)
+        time.sleep(0.25)
+
+    monkeypatch.setattr(TensorBoardSink, "write", slow_write)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 0
+    summary = json.loads((out / SUMMARY_FILE).read_text())
+    assert summary["tracking_seconds"] >= 20 * 0.25 and summary["train_seconds"] < 3.0, summary
+    rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
+    assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
+
+
 # --------------------------------------------------------------------------------------------
 # Item 6: a resume on another layout is refused unless asked for
 
