@@ -205,7 +205,7 @@ def with_distribution(finished: Path, tmp_path: Path, dist: str) -> Path:
     run = tmp_path / f"run-{dist}"
     shutil.copytree(finished, run)
     record = json.loads((run / CONFIG_FILE).read_text())
-    record["config"]["dist"] = dist
+    record["config"]["dist"] = record["trained_with"]["dist"] = dist
     record["env_spec"].update(action_low=[-1e6], action_high=[1e6])
     (run / CONFIG_FILE).write_text(json.dumps(record))
     return run
