@@ -56,6 +56,9 @@ ALGORITHMS: dict[str, Algorithm] = {
 }  # fmt: skip
 # The fields that belong to some algorithms only; giving one to another algorithm is an error.
 ALGORITHM_FIELDS = tuple(dict.fromkeys(name for algorithm in ALGORITHMS.values() for name in algorithm.reads))
+# The fields a trained policy acts by (its network, its distribution, how it normalises
+# observations): read with other values, the same parameters would act otherwise.
+ACTING_FIELDS = ("hidden_sizes", "activation", "dist", "normalize_obs", "obs_clip")
 # The trainer counts updates and indexes its batch with int32 (XLA's default integers without x64).
 INT32_LIMIT = 2**31
 

@@ -108,10 +108,10 @@ def run_command(args: EvaluateArgs) -> None:
     from rpo_jax import video
     from rpo_jax.policy import load_policy
 
+    policy = load_policy(args.trained.run_dir, run)  # before the environment: refuses an edited config.json
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:
         video.check_video(env, "--video")
-    policy = load_policy(args.trained.run_dir, run)
     key = jax.random.PRNGKey(args.seed)
     deterministic = not args.stochastic
     returns = episode_returns(env, policy, args.eval_episodes, key, deterministic)

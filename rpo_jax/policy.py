@@ -15,9 +15,9 @@ from flax import serialization
 
 from rpo_jax import envs, ppo
 from rpo_jax.acting import ActFn, Policy
-from rpo_jax.config import Config
+from rpo_jax.config import ACTING_FIELDS, Config
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import PARAMS_FILE, RunDir
+from rpo_jax.rundir import CONFIG_FILE, PARAMS_FILE, RunDir
 
 
 def load_policy(run_dir: str | Path, run: int | None = None) -> ActFn:
@@ -69,6 +69,7 @@ def load_run(run_dir: str | Path, run: int | None = None) -> tuple[Config, dict[
     directory = RunDir(Path(run_dir))
     run = directory.default_run() if run is None else run
     saved_run = directory.read_config()
+    check_acts_as_trained(directory, saved_run)
     if not 0 <= run < len(saved_run["runs"]):
         raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")
     try:
@@ -80,3 +81,17 @@ def load_run(run_dir: str | Path, run: int | None = None) -> tuple[Config, dict[
     if not all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves((actor_params, stats))):
         raise UsageError(f"{directory.path / PARAMS_FILE}: run {run}'s parameters are not finite (NaN or inf)")
     return Config.from_dict(saved_run["config"]), saved_run["env_spec"], actor_params, stats
+
+
+def check_acts_as_trained(directory: RunDir, saved_run: dict[str, Any]) -> None:
+    """Refuses a config.json edited after training in what the policy acts by, its environment
+    or a config field of `ACTING_FIELDS`, where that differs from config.json's record of what
+    the run was trained with (its trained_with). Other fields may differ: acting does not read them."""
+    trained = saved_run.get("trained_with")
+    acting = {"env": saved_run["env"], **{name: saved_run["config"].get(name) for name in ACTING_FIELDS}}
+    for name, value in acting.items():
+        if isinstance(trained, dict) and name in trained and trained[name] != value:
+            raise UsageError(
+                f"{directory.path / CONFIG_FILE}: its {name} is {value!r}, but the run was trained with {trained[name]!r} "
+                f"(its trained_with); the policy acts only as trained: put {name} back"
+            )

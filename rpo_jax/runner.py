@@ -337,10 +337,11 @@ def falls_due(plan: RunPlan, every: int | None, first_update: int, chunk: int) -
 class Clock:
     """The seconds of a run by what they were spent on: training (the chunks and the host's work
     between them), evaluation (with its compile), videos (drawing and writing them, with their
-    compile) and checkpointing, so that train_seconds and steps/s count training only. A resumed
-    run's go on from its checkpoint's record."""
+    compile), checkpointing and tracking (the sinks' writes and the progress display, between
+    chunks), so that train_seconds and steps/s count training only. A resumed run's go on from
+    its checkpoint's record."""
 
-    KINDS = ("train_seconds", "eval_seconds", "video_seconds", "checkpoint_seconds")
+    KINDS = ("train_seconds", "eval_seconds", "video_seconds", "checkpoint_seconds", "tracking_seconds")
 
     def __init__(self, record: dict[str, Any]) -> None:
         self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
@@ -384,10 +385,7 @@ def train_chunks(
             if metrics_file:
                 write_rows(metrics_file, rows)
             record_returns(rows, logged_returns)
-            for sink in sinks:
-                sink.write(rows)
-            if videos:
-                clock.lap("video_seconds")  # the sinks' copies of the videos (TensorBoard's GIFs, W&B's uploads)
+            track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns))
             if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
                 scored = (metrics.episode_return, logged_returns["eval_return"])
                 state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
@@ -396,12 +394,25 @@ def train_chunks(
                 save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)
                 clock.lap("checkpoint_seconds")
                 last_checkpoint = updates_done
-            if progress:
-                progress(steps_done, progress_metrics(metrics, sps, eval_returns))
     if checkpointer:
         checkpointer.close()
     clock.lap("train_seconds")
     return state, clock.seconds
+
+
+def track_chunk(
+    clock: Clock, sinks: Sequence[Sink], rows: list[dict[str, Any]], progress: ProgressFn | None, steps: int,
+    metrics: dict[str, float],
+) -> None:  # fmt: skip
+    """Writes a chunk's rows to the sinks and calls `progress` with its metrics, timed apart from training."""
+    clock.lap("train_seconds")
+    for sink in sinks:
+        sink.write(rows)
+    # With videos, the sinks' time is mostly their copies of them (TensorBoard's GIFs, W&B's uploads).
+    clock.lap("video_seconds" if any("video" in row for row in rows) else "tracking_seconds")
+    if progress:
+        progress(steps, metrics)
+        clock.lap("tracking_seconds")
 
 
 def save_checkpoint(

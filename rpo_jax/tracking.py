@@ -11,13 +11,21 @@ row has an evaluation, `video/episodes` (the MP4) where it has a video, and `tra
 W&B's files go to the run directory's `wandb/` (offline runs for `wandb sync` to upload later),
 or under the directory the WANDB_DIR variable names. Online, W&B's credentials (`wandb login`,
 WANDB_API_KEY or .netrc) are checked before anything is compiled or written, without the network.
+W&B's service writes each run's file (`run-ID.wandb`) on its own, and drops what it cannot
+write: at the end each file is read back, and one that lacks rows sent to it (a full disk) is
+the run's failed write, an OSError naming it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
+import logging
 import os
-from typing import Any
+import time
+from pathlib import Path
+from typing import Any, Iterator
 
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import RunDir
@@ -35,6 +43,7 @@ class WandbSink:
         self.wandb = wandb
         self.project, self.entity, self.mode, self.group = project, entity, mode, group
         self.runs: list[Any] = []
+        self.logged: list[int] = []  # rows sent to each run by this process
         check_login(wandb, mode)
 
     def open(self, run_dir: RunDir, labels: list[str], kept_rows: list[dict[str, Any]]) -> None:
@@ -48,15 +57,16 @@ class WandbSink:
         # W&B ids from the run directory's absolute path: unique per run, the same on resume.
         prefix = hashlib.sha256(str(run_dir.path.resolve()).encode()).hexdigest()[:12]
         for run, label in zip(record["runs"], labels):
-            self.runs.append(
-                self.wandb.init(
+            with quiet_logging():
+                started = self.wandb.init(
                     project=self.project, entity=self.entity, mode=self.mode, dir=directory,
                     id=f"{prefix}-{run['run']}", resume="allow", reinit="create_new",
                     name=f"{run_dir.path.name}/{label}", group="/".join(filter(None, (group, point_label(record, run)))),
                     job_type=record["env"], config=run_hyperparameters(record, run),
                     settings=self.wandb.Settings(console="off", silent=True, disable_git=True, x_disable_stats=True),
                 )  # fmt: skip
-            )
+            self.runs.append(started)
+            self.logged.append(0)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
@@ -66,12 +76,92 @@ class WandbSink:
                 values["eval/episode_return"] = row["eval_return"]
             if "video" in row:
                 values["video/episodes"] = self.wandb.Video(str(self.run_dir.path / row["video"]), format="mp4")
-            self.runs[row["run"]].log(values, step=row["env_steps"])
+            with quiet_logging():
+                self.runs[row["run"]].log(values, step=row["env_steps"])
+            self.logged[row["run"]] += 1
 
     def close(self) -> None:
-        for run in self.runs:
+        """Finishes every run, then raises the first failed write among them (`finished_run_failure`)."""
+        failures = [finished_run_failure(run, logged) for run, logged in zip(self.runs, self.logged)]
+        self.runs, self.logged = [], []
+        for failure in filter(None, failures):
+            raise failure
+
+
+@contextlib.contextmanager
+def quiet_logging() -> Iterator[None]:
+    """Within the block, a log line that cannot be written (W&B's debug.log on a full disk) is
+    dropped, not printed with its traceback: `finished_run_failure` reports what was lost."""
+    raising, logging.raiseExceptions = logging.raiseExceptions, False
+    try:
+        yield
+    finally:
+        logging.raiseExceptions = raising
+
+
+# How long W&B's service may take to end a run's file after `finish` returns (it writes on its own).
+FILE_TIMEOUT_SECONDS = 10.0
+
+
+def finished_run_failure(run: Any, logged: int) -> OSError | None:
+    """Finishes a W&B run and returns its failed write, if any, naming its file: a failure of
+    W&B's own files as it finished, or a run file that holds fewer than the `logged` rows sent
+    or has not ended within FILE_TIMEOUT_SECONDS (ENOSPC where its disk is full, else EIO).
+    None where all was written."""
+    path = Path(run.settings.sync_file)
+    try:
+        with quiet_logging():
             run.finish()
-        self.runs = []
+    except OSError as error:
+        return OSError(error.errno, error.strerror, str(path.parent))
+    deadline = time.monotonic() + FILE_TIMEOUT_SECONDS
+    while True:
+        history, ended, why = run_file_contents(path)
+        if ended or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    if ended and history >= logged:
+        return None
+    stats = os.statvfs(path.parent)
+    if stats.f_bavail * stats.f_frsize < 1 << 20:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+    return OSError(errno.EIO, f"W&B's run file holds {history} of the {logged} rows sent to it{why}", str(path))
+
+
+def run_file_contents(path: Path) -> tuple[int, bool, str]:
+    """The history rows a W&B run file holds, whether it has ended (its exit record) and, where
+    it cannot be read to its end, why (" (reason)", else "")."""
+    from google.protobuf.message import DecodeError
+
+    kinds: list[str] = []
+    try:
+        kinds.extend(record.WhichOneof("record_type") for record in wandb_records(path))
+    except (OSError, ValueError, DecodeError) as error:  # missing, or not (yet) a file of W&B's records
+        return kinds.count("history"), False, f" ({error})"
+    return kinds.count("history"), "exit" in kinds, ""
+
+
+def wandb_records(path: Path) -> Iterator[Any]:
+    """The records of a W&B run file, each a protobuf `Record`: LevelDB's log format (32 KiB
+    blocks of records, each a 7-byte header of checksum, length and kind, then its data; full,
+    or first, middle, last pieces) after W&B's 7-byte header. ValueError where it is not one."""
+    from wandb.proto import wandb_internal_pb2
+
+    data, block, offset, pieces = path.read_bytes(), 32768, 7, b""
+    if data[:4] != b":W&B":
+        raise ValueError("no W&B header")
+    while offset + 7 <= len(data):
+        if block - offset % block < 7:  # a block's tail too short for a header is padding
+            offset += block - offset % block
+            continue
+        length, kind = int.from_bytes(data[offset + 4 : offset + 6], "little"), data[offset + 6]
+        pieces += data[offset + 7 : offset + 7 + length]
+        offset += 7 + length
+        if kind in (1, 4):
+            record = wandb_internal_pb2.Record()
+            record.ParseFromString(pieces)
+            pieces = b""
+            yield record
 
 
 def check_login(wandb: Any, mode: str | None) -> None:

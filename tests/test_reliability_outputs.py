@@ -17,6 +17,7 @@ import pytest
 import test_reliability
 import test_reliability_processes
 from test_reliability import TINY_FLAGS, one_line
+from test_reliability_processes import ENOSPC
 
 from scipy import stats
 
@@ -205,7 +206,7 @@ def with_distribution(finished: Path, tmp_path: Path, dist: str) -> Path:
     run = tmp_path / f"run-{dist}"
     shutil.copytree(finished, run)
     record = json.loads((run / CONFIG_FILE).read_text())
-    record["config"]["dist"] = dist
+    record["config"]["dist"] = record["trained_with"]["dist"] = dist
     record["env_spec"].update(action_low=[-1e6], action_high=[1e6])
     (run / CONFIG_FILE).write_text(json.dumps(record))
     return run
@@ -366,6 +367,57 @@ def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_c
     assert [path.relative_to(root).parts[0].startswith("offline-run-") for path in root.rglob("*.wandb")] == [True]
     assert not (root / "wandb").exists() and (out / "wandb").exists() == (wandb_dir is None)
     assert report.main([str(out)]) == 0  # a run's report beside its wandb/
+
+
+WANDB_FLAGS = ["--track", "wandb", "--wandb-mode", "offline", "--checkpoint-every", str(8 * 16 * 5)]
+
+
+def drop_rows_after(count: int):
+    """W&B's Run.log, made to lose every row after the first `count`, as its service does on a full disk."""
+    import wandb
+
+    log, calls = wandb.sdk.wandb_run.Run.log, []
+
+    def losing(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) <= count:
+            log(self, *args, **kwargs)
+
+    return losing
+
+
+@pytest.mark.parametrize("failure", ["finish raises", "rows lost"])
+def test_wandb_failing_to_write_is_one_line_and_the_run_resumes(tmp_path, capsys, monkeypatch, no_wandb_credentials, failure):
+    import wandb
+
+    if failure == "finish raises":  # as W&B's debug.log did, closed on a full disk
+        finish = test_reliability_processes.fails_at(1, ENOSPC)(wandb.sdk.wandb_run.Run.finish)
+        monkeypatch.setattr(wandb.sdk.wandb_run.Run, "finish", finish)
+    else:
+        monkeypatch.setattr(wandb.sdk.wandb_run.Run, "log", drop_rows_after(5))
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, *WANDB_FLAGS, "--out", str(out)]) == 2
+    wandb.teardown()
+    line, (sent,) = one_line(capsys), list((out / "wandb").rglob("*.wandb"))
+    why = "No space left on device" if failure == "finish raises" else "W&B's run file holds 5 of the 20 rows sent to it"
+    where = sent.parent if failure == "finish raises" else sent
+    assert line == f"error: {why}: {where}; fix that, then continue with: python -m rpo_jax.train --resume {out}"
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+
+
+def test_wandb_on_a_real_full_disk_is_one_line(small_disk, tmp_path, capsys, monkeypatch, no_wandb_credentials):
+    import wandb
+
+    monkeypatch.setenv("WANDB_DIR", str(small_disk))
+    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
+    (small_disk / "filler").write_bytes(b"\0" * free)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, *WANDB_FLAGS, "--out", str(out)]) == 2
+    wandb.teardown()
+    line = one_line(capsys)  # no logging tracebacks from W&B
+    assert line.startswith(f"error: No space left on device: {small_disk / 'wandb'}/offline-run-"), line
+    assert line.endswith(f"; fix that, then continue with: python -m rpo_jax.train --resume {out}"), line
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,13 +16,14 @@ from pathlib import Path
 
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 from broken_envs import EndlessSimulators
 from point_mass import PointMass
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
 from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
-from rpo_jax import envs, experiment, runner, train
+from rpo_jax import envs, evaluate, experiment, export, runner, train
 from rpo_jax.envs import registry
 from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir
 
@@ -174,6 +175,53 @@ def test_a_checkpoint_recorded_without_its_training_fields_resumes(finished, unf
     assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
 
 
+def command_on(command: str, out: Path, tmp_path: Path) -> int:
+    """evaluate or export run on the run directory `out`, as a user would."""
+    if command == "evaluate":
+        return evaluate.main([str(out), "--episodes", "2"])
+    return export.main([str(out), "--npz", str(tmp_path / "policy.npz")])
+
+
+@pytest.mark.parametrize("command", ["evaluate", "export"])
+@pytest.mark.parametrize(
+    "part, changes",
+    [
+        ("config", {"dist": "laplace"}), ("config", {"hidden_sizes": [32, 32]}), ("config", {"obs_clip": 5.0}),
+        (None, {"env": "test/nan_reward"}),
+    ],
+)
+def test_a_finished_run_edited_in_what_its_policy_acts_by_is_refused(finished, tmp_path, capsys, command, part, changes):
+    out = tmp_path / "run"
+    shutil.copytree(finished, out)
+    record = json.loads((out / CONFIG_FILE).read_text())
+    (record[part] if part else record).update(changes)
+    (out / CONFIG_FILE).write_text(json.dumps(record))
+    assert command_on(command, out, tmp_path) == 2
+    ((name, value),) = changes.items()
+    trained = json.loads((finished / CONFIG_FILE).read_text())["trained_with"][name]
+    assert one_line(capsys) == (
+        f"error: {out / CONFIG_FILE}: its {name} is {value!r}, but the run was trained with {trained!r} (its trained_with); "
+        f"the policy acts only as trained: put {name} back"
+    )
+    assert not (tmp_path / "policy.npz").exists()
+
+
+def test_a_finished_run_edited_in_what_acting_does_not_read_acts_as_before(finished, tmp_path, capsys):
+    out = tmp_path / "edited"
+    shutil.copytree(finished, out)
+    edit_config(out, "config", lr=0.01, num_envs=16, gamma=0.9)
+    edit_config(out, "plan", eval_every=128)
+    printed = []
+    for run in (finished, out):
+        assert evaluate.main([str(run), "--episodes", "2"]) == 0
+        printed.append(capsys.readouterr().out)
+        assert export.main([str(run), "--npz", str(tmp_path / f"{run.name}.npz")]) == 0
+        capsys.readouterr()
+    assert printed[0] == printed[1]  # the same returns
+    before, after = np.load(tmp_path / f"{finished.name}.npz"), np.load(tmp_path / "edited.npz")
+    assert {name: before[name].tolist() for name in before} == {name: after[name].tolist() for name in after}
+
+
 # --------------------------------------------------------------------------------------------
 # Item 17: steps/s and train_seconds count training only
 
@@ -202,6 +250,26 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
     assert summary["eval_seconds"] >= 2 * 2.0 and summary["checkpoint_seconds"] >= 3 * 1.0, summary
     assert summary["train_seconds"] < 3.0, summary
     assert summary["sps"] == summary["total_timesteps"] / summary["train_seconds"]
+    rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
+    assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
+
+
+def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
+    # TensorBoard's writes made slow (0.25 s after each of the 20 chunks): the sinks' time is
+    # tracking_seconds, and steps/s is as fast as without it.
+    from rpo_jax.sinks import TensorBoardSink
+
+    write = TensorBoardSink.write
+
+    def slow_write(self, rows):
+        write(self, rows)
+        time.sleep(0.25)
+
+    monkeypatch.setattr(TensorBoardSink, "write", slow_write)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 0
+    summary = json.loads((out / SUMMARY_FILE).read_text())
+    assert summary["tracking_seconds"] >= 20 * 0.25 and summary["train_seconds"] < 3.0, summary
     rows = [json.loads(line) for line in (out / METRICS_FILE).read_text().splitlines()]
     assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
 

@@ -15,31 +15,10 @@ from test_host import host_point_mass
 
 from rpo_jax import envs, export, load_policy, plan, runner, train
 from rpo_jax.experiment import Job, progress_line
+from rpo_jax.tracking import wandb_records
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
 ENTRY_POINTS = ("train", "evaluate", "experiment", "report", "envs", "export")
-
-
-def wandb_records(path: Path):
-    """The records of an offline W&B run file: LevelDB's log format (32 KiB blocks of records,
-    each a 7-byte header of checksum, length and kind, then its data; full, or first, middle,
-    last pieces) after W&B's 7-byte header, each record a protobuf `Record`."""
-    from wandb.proto import wandb_internal_pb2
-
-    data, block, offset, pieces = path.read_bytes(), 32768, 7, b""
-    assert data[:4] == b":W&B"
-    while offset + 7 <= len(data):
-        if block - offset % block < 7:  # a block's tail too short for a header is padding
-            offset += block - offset % block
-            continue
-        length, kind = int.from_bytes(data[offset + 4 : offset + 6], "little"), data[offset + 6]
-        pieces += data[offset + 7 : offset + 7 + length]
-        offset += 7 + length
-        if kind in (1, 4):
-            record = wandb_internal_pb2.Record()
-            record.ParseFromString(pieces)
-            pieces = b""
-            yield record
 
 
 def read_wandb_run(path: Path) -> dict:
