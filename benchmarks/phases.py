@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 
 import purejaxrl_loop  # this folder's, on the path when run as a script
-from compare import ENV, NUM_STEPS, playground_env, rpo_config
+from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, playground_env, rpo_config
 from rpo_jax import envs, ppo
 
 
@@ -69,10 +69,20 @@ def interleaved(programs: dict[str, Callable[[], Any]], rounds: int) -> dict[str
 
 
 def epochs_flops(run: Callable[[], Any]) -> float:
-    """XLA's count of the floating-point operations of the epochs program `run` calls."""
-    fn, args = run.func, run.args  # type: ignore[attr-defined]
-    cost = fn.lower(*args).compile().cost_analysis()
-    return float((cost[0] if isinstance(cost, list) else cost)["flops"])
+    """XLA's count of the floating-point operations of one call of the epochs program `run`
+    calls. Its cost analysis counts a loop's body once: the body, one gradient step, is counted
+    and multiplied by the steps the loops run (epochs x minibatches)."""
+    cost = run.func.lower(*run.args).compile().cost_analysis()  # type: ignore[attr-defined]
+    steps = EPOCHS * MINIBATCHES
+    return steps * float((cost[0] if isinstance(cost, list) else cost)["flops"])
+
+
+def network_flops(num_envs: int) -> float:
+    """The epochs' matmul FLOPs from the network sizes: per sample and epoch, each of the two
+    networks' multiply-adds twice forward and four times backward (2 + 4 FLOPs per weight)."""
+    sizes = (5, *HIDDEN)
+    weights = sum(a * b for a, b in zip(sizes, sizes[1:])) + HIDDEN[-1]  # hidden layers and the 1-wide head
+    return 6 * 2 * weights * num_envs * NUM_STEPS * EPOCHS
 
 
 def matmul_rate(size: int = 2048, repeats: int = 5) -> float:
@@ -101,6 +111,7 @@ def measure(num_envs: int, rounds: int) -> dict[str, Any]:
     ours, theirs = rpo_jax_phases(num_envs), purejaxrl_loop.phases(loop)
     programs = {f"rpo_jax {name}": run for name, run in ours.items()} | {f"purejaxrl {n}": r for n, r in theirs.items()}
     flops = {"rpo_jax": epochs_flops(ours["minibatch epochs"]), "purejaxrl": epochs_flops(theirs["minibatch epochs"])}
+    flops["networks (from their sizes)"] = network_flops(num_envs)
     return {"seconds": interleaved(programs, rounds), "epochs_flops": flops}
 
 
@@ -122,7 +133,8 @@ def markdown(results: dict[str, Any]) -> str:
     lines += ["|---|---|---|---|---|---|"]
     for num_envs, result in results["sizes"].items():
         for name, flops in result["epochs_flops"].items():
-            rate = flops / statistics.median(result["seconds"][f"{name} minibatch epochs"])
+            seconds = result["seconds"].get(f"{name} minibatch epochs", result["seconds"]["rpo_jax minibatch epochs"])
+            rate = flops / statistics.median(seconds)
             fractions = f"{rate / matmul:.1%} | {rate / peak:.1%}"
             lines.append(f"| {num_envs} | {name} | {flops / 1e9:.2f} | {rate / 1e9:.1f} | {fractions} |")
     return "\n".join(lines)
