@@ -5,7 +5,8 @@
 compare.py's work at each size. `current`: the update as it is; `gather every step`: the
 auto-reset as it was, gathering every environment's state from the pool of starts and selecting
 it at every step (`VectorEnv.step` before the `lax.cond`); `batch carried`: the minibatch epochs
-as they were, carrying the batch through the epochs' scan instead of closing over it. Each
+as they were, carrying the batch through the epochs' scan instead of closing over it; `with the
+finiteness diagnostics`: the update as the command line runs it, counting non-finite numbers. Each
 variant is its own compiled whole update, called on the state after one update.
 """
 
@@ -55,16 +56,18 @@ def epochs_carrying_batch(trainer: Any, hparams: Any, params: Any, opt_state: An
     return params, opt_state, metrics
 
 
-def whole_update(num_envs: int, patch: Callable[[], Callable[[], None]] | None) -> Callable[[], Any]:
-    """The whole update compiled with `patch` applied (patch() returns its undo)."""
+def whole_update(num_envs: int, patch: Callable[[], Callable[[], None]] | None, diagnosed: bool = False) -> Callable[[], Any]:
+    """The whole update compiled with `patch` applied (patch() returns its undo); `diagnosed`:
+    as the command line runs it, with the finiteness counts (`scan_diagnosed_updates`)."""
     undo = patch() if patch else None
     try:
         trainer = ppo.make_trainer(rpo_config(num_envs, num_envs * NUM_STEPS), envs.make_env(ENV))
-        update = jax.jit(trainer.update).lower(state := jax.jit(trainer.init)(jax.random.PRNGKey(0))).compile()
+        program = (lambda s: trainer.scan_diagnosed_updates(s, 1)[0]) if diagnosed else (lambda s: trainer.update(s)[0])
+        update = jax.jit(program).lower(state := jax.jit(trainer.init)(jax.random.PRNGKey(0))).compile()
     finally:
         if undo:
             undo()
-    state, _ = update(state)
+    state = update(state)
     return lambda: update(state)
 
 
@@ -91,7 +94,9 @@ def main() -> int:
     args = parser.parse_args()
     print("| num_envs | variant | whole update s: median (min-max) | vs current |\n|---|---|---|---|")
     for num_envs in args.num_envs:
-        times = interleaved({name: whole_update(num_envs, patch) for name, patch in VARIANTS.items()}, args.rounds)
+        programs = {name: whole_update(num_envs, patch) for name, patch in VARIANTS.items()}
+        programs["with the finiteness diagnostics"] = whole_update(num_envs, None, diagnosed=True)
+        times = interleaved(programs, args.rounds)
         current = statistics.median(times["current"])
         for name, seconds in times.items():
             median = statistics.median(seconds)
