@@ -107,7 +107,10 @@ class Placement:
 
     def chunk_program(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
         """The compiled `chunk` updates of every run: placed state -> (state, metrics)."""
-        program = self._per_device(map_runs(lambda s: trainer.scan_diagnosed_updates(s, chunk)))
+        def chunk_updates(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
+            return trainer.scan_diagnosed_updates(state, chunk)
+
+        program = self._per_device(map_runs(chunk_updates))
         placed = abstract_state if self.kind == "one device" else self._placed_abstract(abstract_state)
         return program.lower(placed).compile()
 
@@ -169,6 +172,7 @@ def map_runs(fn: Callable) -> Callable:
             return jax.vmap(fn)(*args)
         return jax.tree.map(lambda x: x[None], fn(*jax.tree.map(lambda x: x[0], args)))
 
+    mapped.__name__ = getattr(fn, "__name__", mapped.__name__)  # the program's name in JAX's compile log
     return mapped
 
 

@@ -332,8 +332,9 @@ def minibatch_epochs(
         params, opt_state, metrics = gradient_step(trainer, hparams, params, opt_state, *inputs)
         return (params, opt_state), metrics
 
+    # The batch is read by every epoch and changed by none: closed over, not carried.
     def epoch(carry, key):
-        batch, params, opt_state = carry
+        params, opt_state = carry
         permute_key, loss_key = (device_key(k, trainer.axis_name) for k in jax.random.split(key))
         permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
         minibatches = jax.tree.map(
@@ -341,11 +342,10 @@ def minibatch_epochs(
             batch,
         )
         loss_keys = jax.random.split(loss_key, config.num_minibatches)
-        (params, opt_state), metrics = jax.lax.scan(minibatch, (params, opt_state), (minibatches, loss_keys))
-        return (batch, params, opt_state), metrics
+        return jax.lax.scan(minibatch, carry, (minibatches, loss_keys))
 
     keys = jax.random.split(key, config.update_epochs)
-    (_, params, opt_state), metrics = jax.lax.scan(epoch, (batch, params, opt_state), keys)
+    (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
     return params, opt_state, metrics
 
 

@@ -1,0 +1,164 @@
+"""One update in its phases, rpo_jax's against the PureJaxRL-style loop's, and the epochs' arithmetic rate.
+
+    python benchmarks/phases.py --num-envs 256 1024 4096 --rounds 5
+
+compare.py's work (Playground's CartpoleBalance, `impl='jax'`, 32 steps, 4 epochs of 8
+minibatches, 64-64 networks). Each phase is compiled as a program of its own and called on the
+state after one update: rpo_jax's whole update, rollout, values and GAE, minibatch epochs; the
+loop's (`purejaxrl_loop.py`) whole update, rollout (its values are computed while acting), and
+epochs (GAE included). All programs of one size are timed in interleaved rounds (every program
+once a round, the order rotated); medians and ranges.
+
+The arithmetic rate: the floating-point operations of one call of each epochs program, as XLA's
+cost analysis of the compiled program counts them, over its median time; against a float32
+matmul of 2048 x 2048 on this machine (the rate XLA reaches on dense work) and the theoretical
+peak: cores x 32 float32 FLOPs a cycle (one 512-bit fused multiply-add a cycle, as Zen 4 issues
+it on its two 256-bit pipes) x the clock in /proc/cpuinfo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+import purejaxrl_loop  # this folder's, on the path when run as a script
+from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, playground_env, rpo_config
+from rpo_jax import envs, ppo
+
+
+def rpo_jax_phases(num_envs: int) -> dict[str, Callable[[], Any]]:
+    """name -> a call of that phase's own compiled program, on the state after one update."""
+    trainer = ppo.make_trainer(rpo_config(num_envs, num_envs * NUM_STEPS), envs.make_env(ENV))
+    update = jax.jit(trainer.update)
+    state, _ = update(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
+    key = jax.random.PRNGKey(1)
+    rollout = jax.jit(lambda s: ppo.rollout(trainer, s.params, s.env_state, s.obs, key))
+    traj = rollout(state)[2]
+    make_batch = jax.jit(lambda s, traj: ppo.make_batch(trainer, s.params, traj, s.value_stats))
+    batch = make_batch(state, traj)[0]
+    epochs = jax.jit(lambda s, b: ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, b, key))
+    return {
+        "whole update": functools.partial(update, state),
+        "rollout": functools.partial(rollout, state),
+        "values and GAE": functools.partial(make_batch, state, traj),
+        "minibatch epochs": functools.partial(epochs, state, batch),
+    }
+
+
+def interleaved(programs: dict[str, Callable[[], Any]], rounds: int) -> dict[str, list[float]]:
+    """Seconds of each program's call in each of `rounds` rounds, every program once a round."""
+    for run in programs.values():
+        jax.block_until_ready(run())  # compile and warm up
+    names, times = list(programs), {name: [] for name in programs}
+    for index in range(rounds):
+        for name in names[index % len(names) :] + names[: index % len(names)]:
+            start = time.perf_counter()
+            jax.block_until_ready(programs[name]())
+            times[name].append(time.perf_counter() - start)
+    return times
+
+
+def epochs_flops(run: Callable[[], Any]) -> float:
+    """XLA's count of the floating-point operations of one call of the epochs program `run`
+    calls. Its cost analysis counts a loop's body once: the body, one gradient step, is counted
+    and multiplied by the steps the loops run (epochs x minibatches)."""
+    cost = run.func.lower(*run.args).compile().cost_analysis()  # type: ignore[attr-defined]
+    steps = EPOCHS * MINIBATCHES
+    return steps * float((cost[0] if isinstance(cost, list) else cost)["flops"])
+
+
+def network_flops(num_envs: int) -> float:
+    """The epochs' matmul FLOPs from the network sizes: per sample and epoch, each of the two
+    networks' multiply-adds twice forward and four times backward (2 + 4 FLOPs per weight)."""
+    sizes = (5, *HIDDEN)
+    weights = sum(a * b for a, b in zip(sizes, sizes[1:])) + HIDDEN[-1]  # hidden layers and the 1-wide head
+    return 6 * 2 * weights * num_envs * NUM_STEPS * EPOCHS
+
+
+def matmul_rate(size: int = 2048, repeats: int = 5) -> float:
+    """FLOP/s of a float32 [size, size] matmul, the best of `repeats`."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (size, size), jnp.float32)
+    matmul = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(matmul(a))
+    best = min(timed(lambda: matmul(a)) for _ in range(repeats))
+    return 2 * size**3 / best
+
+
+def timed(run: Callable[[], Any]) -> float:
+    start = time.perf_counter()
+    jax.block_until_ready(run())
+    return time.perf_counter() - start
+
+
+def peak_rate() -> float:
+    """Theoretical float32 FLOP/s: cores x 32 FLOPs a cycle x the clock in /proc/cpuinfo."""
+    mhz = [float(line.split(":")[1]) for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("cpu MHz")]
+    return (os.cpu_count() or 1) * 32 * statistics.median(mhz) * 1e6
+
+
+def measure(num_envs: int, rounds: int) -> dict[str, Any]:
+    loop = purejaxrl_loop.make_loop(num_envs, num_envs * NUM_STEPS, playground_env)
+    ours, theirs = rpo_jax_phases(num_envs), purejaxrl_loop.phases(loop)
+    programs = {f"rpo_jax {name}": run for name, run in ours.items()} | {f"purejaxrl {n}": r for n, r in theirs.items()}
+    flops = {"rpo_jax": epochs_flops(ours["minibatch epochs"]), "purejaxrl": epochs_flops(theirs["minibatch epochs"])}
+    flops["networks (from their sizes)"] = network_flops(num_envs)
+    return {"seconds": interleaved(programs, rounds), "epochs_flops": flops}
+
+
+def markdown(results: dict[str, Any]) -> str:
+    matmul, peak = results["matmul_flops"], results["peak_flops"]
+    lines = [
+        f"float32 matmul 2048 x 2048: {matmul / 1e9:.1f} GFLOP/s; theoretical peak {peak / 1e9:.1f} GFLOP/s",
+        "",
+        "| num_envs | phase | rpo_jax s: median (min-max) | PureJaxRL-style s: median (min-max) | rpo_jax / loop |",
+        "|---|---|---|---|---|",
+    ]
+    for num_envs, result in results["sizes"].items():
+        seconds = result["seconds"]
+        for phase in ("whole update", "rollout", "values and GAE", "minibatch epochs"):
+            ours, theirs = seconds.get(f"rpo_jax {phase}"), seconds.get(f"purejaxrl {phase}")
+            ratio = f"{statistics.median(ours) / statistics.median(theirs):.2f}" if ours and theirs else "-"
+            lines.append(f"| {num_envs} | {phase} | {spread(ours)} | {spread(theirs)} | {ratio} |")
+    lines += ["", "| num_envs | trainer | epochs GFLOP per update | GFLOP/s | of the matmul's | of peak |"]
+    lines += ["|---|---|---|---|---|---|"]
+    for num_envs, result in results["sizes"].items():
+        for name, flops in result["epochs_flops"].items():
+            seconds = result["seconds"].get(f"{name} minibatch epochs", result["seconds"]["rpo_jax minibatch epochs"])
+            rate = flops / statistics.median(seconds)
+            fractions = f"{rate / matmul:.1%} | {rate / peak:.1%}"
+            lines.append(f"| {num_envs} | {name} | {flops / 1e9:.2f} | {rate / 1e9:.1f} | {fractions} |")
+    return "\n".join(lines)
+
+
+def spread(seconds: list[float] | None) -> str:
+    if not seconds:
+        return "(in the rollout)"
+    return f"{statistics.median(seconds):.4f} ({min(seconds):.4f}-{max(seconds):.4f})"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1024], help="environments, each size measured")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds of every program")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    args = parser.parse_args()
+    results: dict[str, Any] = {"jax": jax.__version__, "matmul_flops": matmul_rate(), "peak_flops": peak_rate()}
+    results["sizes"] = {n: measure(n, args.rounds) for n in args.num_envs}
+    print(markdown(results))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
