@@ -138,14 +138,8 @@ class VectorEnv:
         # The k-th episode to end since the draw takes start k (mod N): a cumulative count, so
         # each ending episode gets a different start whichever environments they are.
         taken = (state.next_start + jnp.cumsum(done) - 1) % self.num_envs
-
-        def restart(envs: Any) -> tuple[Any, jax.Array]:
-            envs = select(done, jax.tree.map(lambda pool: pool[taken], state.starts), envs)
-            return envs, jnp.where(done[:, None], state.start_obs[taken], ts.obs)
-
-        # Most steps end no episode: they skip the gather of whole states from the pool and the
-        # select (the same values either way; under a vmap over runs both branches run).
-        envs, obs = jax.lax.cond(done.any(), restart, lambda envs: (envs, ts.obs), envs)
+        envs = select(done, jax.tree.map(lambda pool: pool[taken], state.starts), envs)
+        obs = jnp.where(done[:, None], state.start_obs[taken], ts.obs)
         next_start = state.next_start + done.sum(dtype=jnp.int32)
         return state.replace(envs=envs, next_start=next_start), ts.replace(obs=obs, final_obs=ts.obs)
 
