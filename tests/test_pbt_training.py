@@ -153,7 +153,8 @@ TRAIN_POINT_MASS = (
 @pytest.mark.parametrize(
     "populations, steps",
     [
-        (["--population", "4"], 1),
+        # One population on 2 devices (slow, for the suite's time: the case below covers it and more).
+        pytest.param(["--population", "4"], 1, marks=pytest.mark.slow),
         # 3 populations of 3: 9 runs padded to 10 on 2 devices, population 1 (runs 3-5) on both.
         (["--population", "3", "--num-seeds", "3"], 3),
     ],
@@ -203,6 +204,7 @@ def test_bad_population_flags_are_one_line_and_exit_2(tmp_path, capsys, flags, m
     assert not out.exists()
 
 
+@pytest.mark.slow  # 11 s: an experiment of four jobs, each compiled
 def test_the_pbt_alpha_experiment_trains_a_population_beside_fixed_alphas(tmp_path):
     out = tmp_path / "pbt-alpha"
     flags = ["--envs", "test/point_mass", "--jobs", "rpo-0.01", "pbt", *SIZE, "--total-timesteps", str(8 * BATCH)]
