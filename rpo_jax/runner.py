@@ -47,7 +47,8 @@ class Sink(Protocol):
 
     def write(self, rows: list[dict[str, Any]]) -> None: ...
 
-    def close(self) -> None: ...
+    def close(self, summary: dict[str, Any] | None = None) -> None:
+        """After training with its summary.json `summary`, or after a failure with None."""
 
 
 # progress(steps done per run, metrics) after each chunk, as Brax's progress_fn: `records.progress_metrics`.
@@ -187,17 +188,18 @@ def train_locked(
         sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
     record_returns(kept_rows, logged_returns)
+    summary = None
     try:
         state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+        summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
+        if plan.pbt:
+            summary["best_member"] = population.best_member(runs)
+            summary["best_members"] = population.best_members(runs, plan.pbt["population"])  # one per population
     finally:
         for sink in sinks:
-            sink.close()
+            sink.close(summary)
         compiled.trainer.close()
     params, obs_stats = placement.real_runs((state.params, compiled.trainer.observation_statistics(state)))
-    summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
-    if plan.pbt:
-        summary["best_member"] = population.best_member(runs)
-        summary["best_members"] = population.best_members(runs, plan.pbt["population"])  # one per population
     if primary:
         run_dir.write_params(params_bytes(params, obs_stats))
         run_dir.write_summary(summary)

@@ -93,7 +93,7 @@ class TensorBoardSink:
         for file in self.files:
             file.flush()
 
-    def close(self) -> None:
+    def close(self, summary: dict[str, Any] | None = None) -> None:
         for file in self.files:
             file.events.close()
 

@@ -80,12 +80,27 @@ class WandbSink:
                 self.runs[row["run"]].log(values, step=row["env_steps"])
             self.logged[row["run"]] += 1
 
-    def close(self) -> None:
-        """Finishes every run, then raises the first failed write among them (`finished_run_failure`)."""
+    def close(self, summary: dict[str, Any] | None = None) -> None:
+        """Finishes every run, after training with its figures of `summary` (`run_summary`), then
+        raises the first failed write among them (`finished_run_failure`)."""
+        for index, run in enumerate(self.runs if summary else ()):
+            with quiet_logging():
+                run.summary.update(run_summary(summary, index))
         failures = [finished_run_failure(run, logged) for run, logged in zip(self.runs, self.logged)]
         self.runs, self.logged = [], []
         for failure in filter(None, failures):
             raise failure
+
+
+def run_summary(summary: dict[str, Any], index: int) -> dict[str, Any]:
+    """What the W&B run of run `index` holds of summary.json: its own final (and evaluation)
+    return, and under seeds/ the spread over the seeds of its sweep point, its W&B group: mean,
+    sample std (None for one seed) and n, as summary.json and the report give them. A W&B run
+    is one seed, and W&B's own group statistics know nothing of the sample std or n."""
+    run = summary["runs"][index]
+    point = summary["grid"][min(index // summary["num_seeds"], len(summary["grid"]) - 1)]
+    own = {name: run[name] for name in ("final_return", "eval_return") if name in run}
+    return {**own, **{f"seeds/{name}": value for name, value in point.items() if name.endswith(("_mean", "_std", "_n"))}}
 
 
 @contextlib.contextmanager

@@ -22,7 +22,7 @@ ENTRY_POINTS = ("train", "evaluate", "experiment", "report", "envs", "export")
 
 
 def read_wandb_run(path: Path) -> dict:
-    """An offline run's group, name, config and history rows (key -> value by step)."""
+    """An offline run's group, name, config, history rows (key -> value by step) and summary."""
     run = {"history": []}
     for record in wandb_records(path):
         kind = record.WhichOneof("record_type")
@@ -32,6 +32,9 @@ def read_wandb_run(path: Path) -> dict:
         elif kind == "history":
             items = record.history.item
             run["history"].append({item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in items})
+        elif kind == "summary":
+            items = record.summary.update
+            run.setdefault("summary", {}).update({item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in items})
     return run
 
 
@@ -69,6 +72,14 @@ def test_wandb_offline_and_tensorboard_hold_metrics_hyperparameters_and_groups(p
         evaluated = {step["_step"]: step["eval/episode_return"] for step in run["history"] if "eval/episode_return" in step}
         assert evaluated == pytest.approx({row["env_steps"]: row["eval_return"] for row in own if "eval_return" in row})
         assert len(evaluated) == 2  # after 512 steps and at the end
+        # The run's own returns and, under seeds/, the spread over its group's seeds: summary.json's.
+        summary = json.loads((out / "summary.json").read_text())
+        point = summary["grid"][index // 2]
+        assert run["summary"]["final_return"] == pytest.approx(summary["runs"][index]["final_return"])
+        assert run["summary"]["eval_return"] == pytest.approx(summary["runs"][index]["eval_return"])
+        for name in ("final_return_mean", "final_return_std", "final_return_n", "eval_return_std", "eval_return_n"):
+            assert run["summary"][f"seeds/{name}"] == pytest.approx(point[name]), name
+        assert run["summary"]["seeds/final_return_n"] == 2
 
     for label in ("ent_coef=0.01-seed_2", "ent_coef=0-seed_1"):
         events = EventAccumulator(str(out / "tensorboard" / label))
