@@ -34,7 +34,8 @@ def read_wandb_run(path: Path) -> dict:
             run["history"].append({item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in items})
         elif kind == "summary":
             items = record.summary.update
-            run.setdefault("summary", {}).update({item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in items})
+            values = {item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in items}
+            run.setdefault("summary", {}).update(values)
     return run
 
 
