@@ -265,7 +265,8 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         "",
         f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}"
         f"{f' --reference {reference_file}' if reference_file else ''}` from results.csv "
-        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} seed(s) each, "
+        f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} "
+        f"{'seed(s) or population(s)' if jobs else 'seed(s)'} each, "
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
         "",
         *tables.result_tables(summary, envs, variants),

@@ -59,6 +59,7 @@ def test_populations_are_the_runs_as_their_best_member_and_their_mean(text):
     assert "| pbt (best of 3) | 0.630 [" in text and "| 1 | 4 |" in text
     assert "| pbt (best of 3) | ppo | 1.000" in text and "| pbt (mean of 3) | ppo | 0.000" in text
     assert "selected maximum" in text and "optimistic against a single seed" in text
+    assert "4 seed(s) or population(s) each" in text  # a population job's runs are its populations
     # Per population: its best member, what it ended with, and the members' mean.
     assert "| cartpole | pbt | population 1 (seeds 4-6) | seed 6 | 310.00 | 0.000977, 0.0006 | 210.00 |" in text
 
