@@ -88,9 +88,11 @@ def check_acts_as_trained(directory: RunDir, saved_run: dict[str, Any]) -> None:
     or a config field of `ACTING_FIELDS`, where that differs from config.json's record of what
     the run was trained with (its trained_with). Other fields may differ: acting does not read them."""
     trained = saved_run.get("trained_with")
+    if not isinstance(trained, dict):  # runs written before config.json recorded it
+        return
     acting = {"env": saved_run["env"], **{name: saved_run["config"].get(name) for name in ACTING_FIELDS}}
     for name, value in acting.items():
-        if isinstance(trained, dict) and name in trained and trained[name] != value:
+        if name in trained and trained[name] != value:
             raise UsageError(
                 f"{directory.path / CONFIG_FILE}: its {name} is {value!r}, but the run was trained with {trained[name]!r} "
                 f"(its trained_with); the policy acts only as trained: put {name} back"

@@ -98,7 +98,7 @@ def run_summary(summary: dict[str, Any], index: int) -> dict[str, Any]:
     sample std (None for one seed) and n, as summary.json and the report give them. A W&B run
     is one seed, and W&B's own group statistics know nothing of the sample std or n."""
     run = summary["runs"][index]
-    point = summary["grid"][min(index // summary["num_seeds"], len(summary["grid"]) - 1)]
+    point = summary["grid"][index // summary["num_seeds"]]  # runs are grid points x seeds (a population: one point)
     own = {name: run[name] for name in ("final_return", "eval_return") if name in run}
     return {**own, **{f"seeds/{name}": value for name, value in point.items() if name.endswith(("_mean", "_std", "_n"))}}
 
