@@ -1,11 +1,18 @@
 """Evaluate a trained policy on fresh episodes, and optionally record one as a video.
 
-    python -m rpo_jax.evaluate runs/cartpole-rpo-20261123-101500 --eval-episodes 20
-    python -m rpo_jax.evaluate RUN_DIR --stochastic --video cartpole.mp4
+    python -m rpo_jax.evaluate runs/cartpole-rpo-20261123-101500
+    python -m rpo_jax.evaluate RUN_DIR --eval-episodes 20 --seed 7 --stochastic --video cartpole.mp4
 
 The policy acts deterministically (the location of its distribution) unless --stochastic; the
 result says which. Returns are the environment's own rewards (no reward scaling or normalisation), one episode
 per parallel environment, each to its end or the time limit.
+
+It runs training's own evaluation program (`rpo_jax.evaluation`) on all the directory's runs
+and prints the one asked for. By default the episodes are those of each run's final evaluation
+in training (its --eval-episodes, keys from its seed and last update), so a deterministic result
+is the `eval_return` that training logged last, bit for bit, on any task; `--seed` and
+`--eval-episodes` choose others. Another program (one run under a plain `jax.jit`) acts the
+same to float rounding only, which a chaotic task (Cartpole) amplifies into other returns.
 
 Videos (`rpo_jax.video`) are drawn offscreen by MuJoCo's renderer, or by a host-side suite's
 own rendering (Gymnasium, DeepMind Control). On a machine without a display MuJoCo needs an
@@ -25,7 +32,7 @@ from typing import TYPE_CHECKING, Annotated, Sequence
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.rundir import check_new_file
+from rpo_jax.rundir import RunDir, check_new_file
 from rpo_jax.scores import sample_std, with_spread
 from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
 
@@ -41,7 +48,9 @@ if TYPE_CHECKING:
 
 
 def episode_returns(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool) -> np.ndarray:
-    """The undiscounted return of the first episode of each of `episodes` parallel copies."""
+    """The undiscounted return of the first episode of each of `episodes` parallel copies, for
+    any policy function (`benchmarks/random_returns.py`'s uniform one); a trained run's are
+    `evaluation.saved_evaluation`'s, as in training."""
     import functools
 
     import jax
@@ -68,11 +77,12 @@ class EvaluateArgs:
     distribution, as in-training evaluation and the exports act), or with --stochastic a sample."""
 
     trained: tyro.conf.OmitArgPrefixes[TrainedRun]
-    eval_episodes: Annotated[EvalEpisodes, tyro.conf.arg(aliases=("--episodes",))] = 10
+    eval_episodes: Annotated[EvalEpisodes | None, tyro.conf.arg(aliases=("--episodes",))] = None
+    """episodes (parallel copies of the environment); default: the run's --eval-episodes"""
     stochastic: bool = False
     """sample each action from the policy's distribution instead of taking its location"""
-    seed: int = 0
-    """seed of the evaluation episodes"""
+    seed: int | None = None
+    """seed of other episodes; default: the run's own seed, which gives the episodes of its final evaluation in training"""
     video: Annotated[Path | None, tyro.conf.arg(metavar="OUT.mp4")] = None
     """also render one episode to this file"""
 
@@ -85,9 +95,9 @@ def parse_args(argv: Sequence[str]) -> EvaluateArgs:
     """The flags as EvaluateArgs, checked; bad input raises UsageError as one line."""
     refuse_old_flags(argv, OLD_FLAGS)
     args = parse(EvaluateArgs, argv, None, PROG)
-    if args.eval_episodes < 1:
+    if args.eval_episodes is not None and args.eval_episodes < 1:
         raise UsageError(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
-    if not 0 <= args.seed < 2**32:
+    if args.seed is not None and not 0 <= args.seed < 2**32:
         raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
     return args
 
@@ -105,25 +115,43 @@ def run_command(args: EvaluateArgs) -> None:
         check_video_path(args.video)
     import jax
 
-    from rpo_jax import video
-    from rpo_jax.policy import load_policy
+    from rpo_jax import evaluation, video
+    from rpo_jax.plan import PLAN_DEFAULTS
+    from rpo_jax.policy import load_runs
 
-    policy = load_policy(args.trained.run_dir, run)  # before the environment: refuses an edited config.json
+    runs = load_runs(args.trained.run_dir)  # before the environment: refuses an edited config.json
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:
         video.check_video(env, "--video")
-    key = jax.random.PRNGKey(args.seed)
+    in_training = saved.get("plan", {}).get("eval_episodes", PLAN_DEFAULTS["eval_episodes"])
+    episodes = args.eval_episodes or in_training
+    seeds = [entry["seed"] if args.seed is None else args.seed for entry in saved["runs"]]
     deterministic = not args.stochastic
-    returns = episode_returns(env, policy, args.eval_episodes, key, deterministic)
-    spread = with_spread(f"{returns.mean():.2f}", f" ± {sample_std(returns):.2f}", args.eval_episodes)
+    # Training's program over all the runs, as in training: another rounds differently (module docstring).
+    returns, means, run_policy = evaluation.saved_evaluation(runs, env, episodes, seeds, deterministic)
+    spread = with_spread(f"{means[run]:.2f}", f" ± {sample_std(returns[run]):.2f}", episodes)
     print(
         f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "
-        f"return {spread} over {args.eval_episodes} episodes"
+        f"return {spread} over {episodes} episodes, {episodes_source(args, run, episodes == in_training)}"
     )
     if args.video:
-        (episode,) = video.record(env, policy, 1, jax.random.fold_in(key, 1), deterministic)
+        key = jax.random.fold_in(jax.random.PRNGKey(seeds[run]), 1)
+        (episode,) = video.record(env, run_policy(run), 1, key, deterministic)
         video.write_mp4(args.video, [episode])
         print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
+
+
+def episodes_source(args: EvaluateArgs, run: int, as_in_training: bool) -> str:
+    """Which episodes a result is of, and what training logged of the same ones where it did
+    (`as_in_training`: as many episodes as its evaluations had)."""
+    if args.seed is not None:
+        return f"those of --seed {args.seed}"
+    logged = None
+    run_dir = RunDir(args.trained.run_dir)
+    if as_in_training and not args.stochastic and run_dir.is_finished():
+        logged = run_dir.read_summary()["runs"][run].get("eval_return")
+    said = "" if logged is None else f" (logged {logged:.2f})"
+    return f"those of its final evaluation in training{said}"
 
 
 def policy_mode(deterministic: bool) -> str:

@@ -67,19 +67,30 @@ def load_run(run_dir: str | Path, run: int | None = None) -> tuple[Config, dict[
     """One run's config, environment spec (as config.json records it), actor parameters and
     observation statistics; `run` as `load_policy`'s."""
     directory = RunDir(Path(run_dir))
-    run = directory.default_run() if run is None else run
-    saved_run = directory.read_config()
-    check_acts_as_trained(directory, saved_run)
-    if not 0 <= run < len(saved_run["runs"]):
-        raise ValueError(f"run must be in [0, {len(saved_run['runs'])}), got {run}")
-    try:
-        saved = serialization.msgpack_restore(directory.read_params())
-        actor_params = jax.tree.map(lambda x: jnp.asarray(x[run]), saved["params"]["actor"])
-        stats = envs.RunningMeanStd(**{k: jnp.asarray(v[run]) for k, v in saved["obs_stats"].items()})
-    except (ValueError, KeyError, TypeError, IndexError) as error:  # msgpack's errors are ValueErrors
-        raise UsageError(f"{directory.path / PARAMS_FILE} is damaged ({error}); rpo_jax.train did not write it whole") from None
+    run, runs = directory.default_run() if run is None else run, len(directory.read_config()["runs"])
+    if not 0 <= run < runs:
+        raise ValueError(f"run must be in [0, {runs}), got {run}")
+    config, spec, actor_params, stats = load_runs(run_dir)
+    actor_params, stats = jax.tree.map(lambda x: jnp.asarray(x[run]), (actor_params, stats))
     if not all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves((actor_params, stats))):
         raise UsageError(f"{directory.path / PARAMS_FILE}: run {run}'s parameters are not finite (NaN or inf)")
+    return config, spec, actor_params, stats
+
+
+def load_runs(run_dir: str | Path) -> tuple[Config, dict[str, Any], Any, envs.RunningMeanStd]:
+    """`load_run`'s parts of every run of the directory: the actor parameters and observation
+    statistics with leaves [runs, ...] (numpy, as saved)."""
+    directory = RunDir(Path(run_dir))
+    saved_run = directory.read_config()
+    check_acts_as_trained(directory, saved_run)
+    runs = len(saved_run["runs"])
+    try:
+        saved = serialization.msgpack_restore(directory.read_params())
+        actor_params, stats = saved["params"]["actor"], envs.RunningMeanStd(**saved["obs_stats"])
+        if {len(leaf) for leaf in jax.tree.leaves((actor_params, stats))} != {runs}:
+            raise ValueError(f"it does not hold the {runs} run(s) of config.json")
+    except (ValueError, KeyError, TypeError, IndexError) as error:  # msgpack's errors are ValueErrors
+        raise UsageError(f"{directory.path / PARAMS_FILE} is damaged ({error}); rpo_jax.train did not write it whole") from None
     return Config.from_dict(saved_run["config"]), saved_run["env_spec"], actor_params, stats
 
 

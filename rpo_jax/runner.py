@@ -105,8 +105,7 @@ class Compiled:
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
     chunk: int
     compile_seconds: float
-    # (real runs' evaluation_inputs, keys) -> each run's mean deterministic return; None: evaluation off
-    run_eval: Callable[[dict[str, Any], jax.Array], jax.Array] | None = None
+    run_eval: evaluation.EvaluationProgram | None = None  # None: evaluation off
     eval_keys: jax.Array | None = None
     capture: video.Capture | None = None  # None: no videos during training
     video_keys: jax.Array | None = None
@@ -262,14 +261,14 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
                 # The simulators died with the interrupted process and no checkpoint holds them.
                 state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
-    run_eval = evaluation.compile_evaluation(plan, env, trainer) if plan.eval_every else None
+    run_eval = evaluation.compile_evaluation(trainer.config, trainer.actor, env, plan.eval_episodes) if plan.eval_every else None
     labels = [run_label(run, list(plan.grid[0])) for run in runs]
     capture = None
     if plan.capture_video:
-        policy = evaluation.run_policy(trainer, env)
+        policy = evaluation.run_policy(trainer.config, trainer.actor, env)
         capture = video.Capture(plan.out, env, policy, plan.capture_video_episodes, labels, is_primary())
     # Evaluation and video keys of their own, so that they leave training's random numbers alone.
-    eval_keys, video_keys = (jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, stream) for stream in evaluation.STREAMS)
+    eval_keys, video_keys = (evaluation.stream_keys(keys, stream) for stream in evaluation.STREAMS)
     evolve = population.step_program(plan, placement, state) if plan.pbt else None
     seconds = time.perf_counter() - start
     return Compiled(
@@ -312,7 +311,8 @@ def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainStat
     if compiled.run_eval is None or not falls_due(plan, plan.eval_updates, first_update, compiled.chunk):
         return None
     inputs = compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state))
-    return np.asarray(jax.device_get(compiled.run_eval(inputs, compiled.eval_keys)))
+    _, means = compiled.run_eval(inputs, compiled.eval_keys)
+    return np.asarray(jax.device_get(means))
 
 
 def after_chunk(

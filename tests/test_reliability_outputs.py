@@ -21,10 +21,11 @@ from test_reliability_processes import ENOSPC
 
 from scipy import stats
 
-from rpo_jax import evaluate, export, load_policy, report, runner, tracking, train
+from rpo_jax import evaluate, evaluation, export, load_policy, report, runner, tracking, train
 from rpo_jax import video as rpo_video
 from rpo_jax.envs import __main__ as envs_main
 from rpo_jax.errors import UsageError
+from rpo_jax.policy import load_runs
 from rpo_jax.rundir import CONFIG_FILE
 
 # The point mass registered as test/point_mass, and its tiny runs, finished and unfinished.
@@ -171,15 +172,17 @@ def test_evaluate_imports_a_module_outside_the_run_directory(finished, tmp_path,
 def test_evaluate_acts_deterministically_unless_stochastic_and_says_which(finished, capsys):
     from rpo_jax import envs
 
-    env, policy = envs.make_env("test/point_mass"), load_policy(finished)
+    env, saved = envs.make_env("test/point_mass"), load_runs(finished)
     printed = {}
     for flags, mode in (([], "deterministic"), (["--stochastic"], "stochastic")):
         assert evaluate.main([str(finished), "--eval-episodes", "3", *flags]) == 0
         line = capsys.readouterr().out.strip()
         assert line.startswith(f"test/point_mass run 0 (seed 1), {mode} policy: return "), line
-        printed[mode] = float(line.split("return ")[1].split()[0])
-        expected = evaluate.episode_returns(env, policy, 3, jax.random.PRNGKey(0), deterministic=mode == "deterministic")
-        assert printed[mode] == pytest.approx(float(expected.mean()), abs=0.006)
+        printed[mode] = line.split("return ")[1].split()[0]
+        # The evaluation program of training, on the episodes of the run's final evaluation (seed 1's).
+        _, means, _ = evaluation.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
+        assert printed[mode] == f"{means[0]:.2f}"
+        assert line.endswith("over 3 episodes, those of its final evaluation in training"), line
     assert printed["deterministic"] != printed["stochastic"]
 
 
@@ -447,7 +450,7 @@ def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp
     (tmp_path / "ro").mkdir()
     read_only(tmp_path / "ro", monkeypatch)
     (tmp_path / "dangling.mp4").symlink_to(tmp_path / "nowhere")
-    monkeypatch.setattr(evaluate, "episode_returns", lambda *args: pytest.fail("the evaluation ran"))
+    monkeypatch.setattr(evaluation, "saved_evaluation", lambda *args: pytest.fail("the evaluation ran"))
     assert evaluate.main([str(finished), "--video", video]) == 2
     assert one_line(capsys) == message.format(tmp=tmp_path)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["dangling.mp4", "ro"]
