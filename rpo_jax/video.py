@@ -8,8 +8,11 @@ Two ways of drawing, chosen by the environment:
   each with MuJoCo's renderer (`mujoco.Renderer`, offscreen) from the model's first camera, on
   the environment's `render_model` (a copy dressed with light, floor and colours) where it has one.
 - host-side suites that draw themselves (`HostEnv.make_drawn`: Gymnasium's tasks and envpool's
-  DeepMind Control): one simulator steps the policy on the host and its own rgb_array
-  rendering gives the frames.
+  DeepMind Control): one simulator steps the policy on the host, and a fresh one of the same
+  seed plays the episode's actions again, its own rgb_array rendering giving the frames.
+
+Either way an episode keeps what draws it again (joint positions, or a seed and actions), and
+its frames (`DrawnFrames`) are drawn as the encoder reads them, never all held at once.
 
 Environments with neither (gym/Pendulum-v1, written in JAX without a model; PyBullet; one's
 own without `Renderable`) are refused by `check_video` before any work. MuJoCo draws with the
@@ -48,8 +51,8 @@ WIDTH, HEIGHT = 480, 360
 @dataclasses.dataclass
 class Episode:
     """One drawn episode: a frame [HEIGHT, WIDTH, 3] uint8 per state from the reset to its end
-    (steps + 1 frames), its undiscounted return and the frame rate of simulated time. An MJX
-    task's frames are `DrawnFrames`, drawn as they are read; a host-side suite's are held."""
+    (steps + 1 frames; `DrawnFrames`, drawn as they are read), its undiscounted return and the
+    frame rate of simulated time."""
 
     frames: Sequence[np.ndarray]
     total: float
@@ -176,7 +179,8 @@ def drawn_episodes(env: envs.Env, qpos: np.ndarray, rewards: np.ndarray, ended: 
     result = []
     for index in range(qpos.shape[1]):
         steps = int(np.argmax(ended[:, index])) + 1
-        frames = DrawnFrames(env, qpos[: steps + 1, index])
+        positions = qpos[: steps + 1, index]
+        frames = DrawnFrames(len(positions), lambda start, stop, positions=positions: draw(env, positions[start:stop]))
         result.append(Episode(frames, float(rewards[:steps, index].sum()), fps))
     return result
 
@@ -191,18 +195,40 @@ def host_episodes(env: envs.HostEnv, act: HostAct, episodes: int, key: jax.Array
 
 
 def host_episode(env: envs.HostEnv, act: HostAct, seed: int, key: jax.Array) -> Episode:
-    """One episode of a host-side suite's drawn simulator, to its end or the time limit."""
+    """One episode of a host-side suite's drawn simulator, to its end or the time limit, played
+    without drawing; its frames are drawn when read (`replayed_frames`)."""
     simulator = env.make_drawn(seed, WIDTH, HEIGHT)
     try:
-        obs, frames, total = simulator.reset(), [simulator.frame()], 0.0
+        obs, actions, rewards = simulator.reset(), [], []
         for step in range(env.spec.max_episode_steps):
-            action = np.asarray(act(np.asarray(obs, np.float32), jax.random.fold_in(key, step)))
-            obs, reward, terminated, truncated = simulator.step(action)
-            frames.append(simulator.frame())
-            total += float(reward)
+            actions.append(np.asarray(act(np.asarray(obs, np.float32), jax.random.fold_in(key, step))))
+            obs, reward, terminated, truncated = simulator.step(actions[-1])
+            rewards.append(float(reward))
             if terminated or truncated:
                 break
-        return Episode(frames, total, simulator.fps)
+        fps = simulator.fps
+    finally:
+        simulator.close()
+    frames = DrawnFrames(len(actions) + 1, lambda start, stop: replayed_frames(env, seed, actions, rewards, start, stop))
+    return Episode(frames, sum(rewards), fps)
+
+
+def replayed_frames(
+    env: envs.HostEnv, seed: int, actions: list[np.ndarray], rewards: list[float], start: int, stop: int
+) -> Iterator[np.ndarray]:  # fmt: skip
+    """Frames `start` to `stop - 1` of a host-side episode (frame 0 after the reset, frame i after
+    action i - 1), drawn by a fresh simulator of its seed playing its actions again: the suites
+    step deterministically, and a replay earning other rewards than the episode is an error."""
+    simulator = env.make_drawn(seed, WIDTH, HEIGHT)
+    try:
+        simulator.reset()
+        for index in range(stop):
+            if index:
+                _, reward, _, _ = simulator.step(actions[index - 1])
+                if float(reward) != rewards[index - 1]:
+                    raise RuntimeError(f"{env.spec.name}: replaying an episode to draw it gave step {index} another reward")
+            if index >= start:
+                yield simulator.frame()
     finally:
         simulator.close()
 
@@ -238,22 +264,26 @@ def draw(env: envs.Renderable, positions: Iterable[np.ndarray]) -> Iterator[np.n
 
 
 class DrawnFrames(Sequence[np.ndarray]):
-    """The frames of an episode's joint positions [T, nq], drawn when read rather than held: a
-    thousand-step episode's frames are half a gigabyte, its positions a few hundred kilobytes."""
+    """An episode's `count` frames, drawn when read rather than held: a thousand-step episode's
+    frames are half a gigabyte, what draws them again (an MJX task's joint positions, a host-side
+    suite's seed and actions) a few hundred kilobytes. `draw(start, stop)` yields frames `start`
+    to `stop - 1`."""
 
-    def __init__(self, env: envs.Renderable, positions: np.ndarray) -> None:
-        self.env, self.positions = env, positions
+    def __init__(self, count: int, draw: Callable[[int, int], Iterator[np.ndarray]]) -> None:
+        self.count, self.draw = count, draw
 
     def __len__(self) -> int:
-        return len(self.positions)
+        return self.count
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        return draw(self.env, self.positions)
+        return self.draw(0, self.count)
 
     def __getitem__(self, index: Any) -> Any:
         if isinstance(index, slice):
-            return list(draw(self.env, self.positions[index]))
-        return list(draw(self.env, [self.positions[index]]))[0]
+            return list(self)[index]
+        index = range(self.count)[index]  # from the end where negative; IndexError past either end
+        with contextlib.closing(self.draw(index, index + 1)) as frames:
+            return next(frames)
 
 
 def write_mp4(path: Path, episodes: list[Episode]) -> None:

@@ -2,8 +2,10 @@
 the environments that draw (MJX through MuJoCo's renderer with a dressed scene, Gymnasium and
 DeepMind Control through their own rendering) and the refusal of those that cannot."""
 
+import dataclasses
 import json
 import time
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -220,6 +222,67 @@ def test_videos_that_cannot_be_made_are_refused_before_any_work(drawn_envs, tmp_
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(message)
     assert not (tmp_path / "out").exists()
+
+
+class CountedDrawnPointMassSim(DrawnPointMassSim):
+    """The drawn host point mass counting the frames it draws and those still held anywhere."""
+
+    LONG = 40  # steps of its episodes
+    drawn, held, most_held = 0, 0, 0
+
+    def step(self, action):
+        obs, reward, terminated, _ = super().step(action)
+        return obs, reward, terminated, self.t >= self.LONG
+
+    def frame(self):
+        picture = super().frame()
+        cls = CountedDrawnPointMassSim
+        cls.drawn, cls.held, cls.most_held = cls.drawn + 1, cls.held + 1, max(cls.most_held, cls.held + 1)
+        weakref.finalize(picture, lambda: setattr(cls, "held", cls.held - 1))
+        return picture
+
+
+def test_a_host_side_episode_is_drawn_as_the_encoder_reads_it_with_the_frames_one_pass_draws(tmp_path, monkeypatch):
+    pytest.importorskip("imageio_ffmpeg")
+    counted = CountedDrawnPointMassSim
+    monkeypatch.setattr(counted, "drawn", 0)
+    spec = dataclasses.replace(HOST_SPEC, max_episode_steps=counted.LONG)
+    env = HostEnv(spec, host_point_mass().make_simulators, lambda seed, width, height: counted(0, seed))
+    push = lambda obs, key, deterministic: jnp.full(obs.shape[:-1] + (1,), 0.7)
+    (episode,) = video.record(env, push, 1, jax.random.PRNGKey(0), deterministic=True)
+    assert counted.drawn == 0 and episode.steps == counted.LONG  # played, nothing drawn yet
+    # What one pass drawing every state as it steps (the way frames were held before) draws.
+    simulator = counted(0, int(jax.random.randint(jax.random.PRNGKey(0), (), 0, 2**30)))  # host_episodes' seed
+    simulator.reset()
+    expected = [simulator.frame()]
+    for _ in range(counted.LONG):
+        simulator.step(np.full(1, 0.7))
+        expected.append(simulator.frame())
+    assert len(episode.frames) == len(expected) and all(map(np.array_equal, episode.frames, expected))
+    del expected
+    monkeypatch.setattr(counted, "drawn", 0)
+    monkeypatch.setattr(counted, "most_held", 0)
+    video.write_mp4(tmp_path / "push.mp4", [episode])
+    # Each frame drawn once, while the encoder reads them: at most three held at once (the first,
+    # kept for its size, the one being encoded and the one being drawn), not the episode's 41.
+    assert counted.drawn == counted.LONG + 1 and counted.most_held <= 3
+    assert len(read_frames(tmp_path / "push.mp4")) == counted.LONG + 1
+
+
+class ChancyDrawnPointMassSim(DrawnPointMassSim):
+    """A drawn simulator that does not step the same way twice: its rewards are random."""
+
+    def step(self, action):
+        obs, _, terminated, truncated = super().step(action)
+        return obs, float(np.random.default_rng().uniform()), terminated, truncated
+
+
+def test_a_host_side_episode_that_replays_otherwise_is_refused_rather_than_drawn_wrong():
+    env = HostEnv(HOST_SPEC, host_point_mass().make_simulators, lambda seed, width, height: ChancyDrawnPointMassSim(0, seed))
+    still = lambda obs, key, deterministic: jnp.zeros(1)
+    (episode,) = video.record(env, still, 1, jax.random.PRNGKey(0), deterministic=True)
+    with pytest.raises(RuntimeError, match="replaying an episode to draw it gave step 1 another reward"):
+        list(episode.frames)
 
 
 def test_a_gymnasium_task_draws_itself():
