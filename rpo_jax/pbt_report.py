@@ -172,7 +172,7 @@ def section(runs: Runs, jobs: dict[str, PopulationJob]) -> list[str]:
     for variant, job in dict((key[1], job) for key, job in found).items():
         lines += [
             f"The runs of {variant} are populations of {job.size} members (population-based training over "
-            f"{', '.join(job.fields)}; `rpo_jax.pbt`), each population evolving on its own. Its unit of replication is "
+            f"{', '.join(job.fields)}; `rpo_jax.pbt`), each population evolving on its own. Their unit of replication is "
             f"the population, not the member: above, **{job.best_variant(variant)}** is each population's best member "
             "as summary.json names it (the highest last evaluation return where the members were evaluated, else the "
             f"highest final training return), and **{job.mean_variant(variant)}** the mean over its members at every "
