@@ -1,5 +1,6 @@
-"""The report's view of an experiment's population jobs (population-based training, `rpo_jax.pbt`):
-their unit of replication is the population, not the member.
+"""The report's view of an experiment's population jobs, and of a training run's population
+(population-based training, `rpo_jax.pbt`): their unit of replication is the population, not the
+member. A run with --pbt is read as a job of its own (`run_job`, from its config.json).
 
 A job with a population in experiment.json trained K populations of N members (seeds seed to
 seed + K*N - 1, population k the N seeds from seed + k*N). Its members' rows become two variants
@@ -63,6 +64,14 @@ def population_jobs(directory: Path, prefix: str = "") -> dict[str, PopulationJo
         raise UsageError(f"{path}: not an experiment's record ({error!r}); rpo_jax.experiment writes it") from None
 
 
+def run_job(record: dict) -> PopulationJob | None:
+    """The population of a training run, from its config.json `record` (None: it has none)."""
+    evolution = record["plan"].get("pbt")
+    if not evolution:
+        return None
+    return PopulationJob(evolution["population"], tuple(part.partition("=")[0] for part in evolution["pbt_fields"].split(",")))
+
+
 def split_populations(runs: dict[float, list[dict]], size: int, name: str) -> list[list[list[dict]]]:
     """A population job's runs (seed -> rows) as populations of `size` members, by seed order."""
     seeds = sorted(runs)
@@ -97,9 +106,22 @@ def mean_rows(members: Sequence[list[dict]], variant: str, seed: float) -> list[
     return rows
 
 
+def replicated(members: dict[float, list[dict]], job: PopulationJob, variant: str, name: str) -> dict[str, list[list[dict]]]:
+    """A population job's member runs (seed -> rows) as its "best of N" and "mean of N" variants,
+    each with one run per population (seed: the population's first seed): variant -> runs."""
+    best, mean = job.best_variant(variant), job.mean_variant(variant)
+    populations = split_populations(members, job.size, name)
+    firsts = [population[0][0]["seed"] for population in populations]
+    return {
+        best: [[{**row, "variant": best, "seed": first} for row in population[best_index(population)]]
+               for population, first in zip(populations, firsts)],
+        mean: [mean_rows(population, mean, first) for population, first in zip(populations, firsts)],
+    }  # fmt: skip
+
+
 def replicate_rows(rows: Sequence[dict], runs: Runs, jobs: dict[str, PopulationJob]) -> list[dict]:
     """`rows` with each population job's member rows replaced, where they first appear, by its
-    "best of N" and "mean of N" variants' rows, one run per population (seed: its first seed)."""
+    `replicated` variants' rows."""
     replaced: list[dict] = []
     done = set()
     for row in rows:
@@ -109,11 +131,8 @@ def replicate_rows(rows: Sequence[dict], runs: Runs, jobs: dict[str, PopulationJ
             replaced.append(row)
         elif key not in done:
             done.add(key)
-            for members in split_populations(runs[key], job.size, " ".join(key)):
-                first = members[0][0]["seed"]
-                best = job.best_variant(row["variant"])
-                replaced += [{**member, "variant": best, "seed": first} for member in members[best_index(members)]]
-                replaced += mean_rows(members, job.mean_variant(row["variant"]), first)
+            for variant_runs in replicated(runs[key], job, row["variant"], " ".join(key)).values():
+                replaced += [member for run in variant_runs for member in run]
     return replaced
 
 
@@ -144,7 +163,7 @@ def write_figures(runs: Runs, jobs: dict[str, PopulationJob], out: Path) -> list
 
 
 def section(runs: Runs, jobs: dict[str, PopulationJob]) -> list[str]:
-    """The report's text on its population jobs: what their two variants mean, and per population
+    """The report's text on its population jobs (or runs): what their two variants mean, and per population
     its best member with the hyperparameters it ended with, beside the members' mean."""
     found = [(key, jobs[key[1]]) for key in runs if key[1] in jobs]
     if not found:
@@ -152,12 +171,12 @@ def section(runs: Runs, jobs: dict[str, PopulationJob]) -> list[str]:
     lines = ["## Populations", ""]
     for variant, job in dict((key[1], job) for key, job in found).items():
         lines += [
-            f"The job {variant} trained populations of {job.size} members (population-based training over "
-            f"{', '.join(job.fields)}; `rpo_jax.pbt`), each population evolving on its own. Its unit of replication is "
+            f"The runs of {variant} are populations of {job.size} members (population-based training over "
+            f"{', '.join(job.fields)}; `rpo_jax.pbt`), each population evolving on its own. Their unit of replication is "
             f"the population, not the member: above, **{job.best_variant(variant)}** is each population's best member "
             "as summary.json names it (the highest last evaluation return where the members were evaluated, else the "
             f"highest final training return), and **{job.mean_variant(variant)}** the mean over its members at every "
-            "logged update; mean ± sample std [95% CI], IQM and P(X > Y) count one run per population. The best of "
+            "logged update; the statistics above count one run per population. The best of "
             f"{job.size} is a selected maximum: it is optimistic against a single seed of a fixed-hyperparameter "
             "variant, which had no such selection; the mean is the fair comparison.",
             "",

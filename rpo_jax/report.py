@@ -1,8 +1,9 @@
-"""Tables and figures from experiment results, or from one training run.
+"""Tables and figures from experiment results, or from training runs.
 
     python -m rpo_jax.report experiments/entropy-reg
     python -m rpo_jax.report experiments/distributions experiments/alpha-ablation --out overlay
     python -m rpo_jax.report runs/cartpole-rpo-20261123-101500
+    python -m rpo_jax.report runs/cartpole-rpo runs/cartpole-pbt --out compared
 
 Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes report.md and
 figures/ (PNG, and PDF beside each): per environment and variant the final return with its sample std and a 95%
@@ -11,7 +12,10 @@ normalised scores and the probability that RPO improves on each baseline, with s
 bootstrap intervals (`rpo_jax.aggregate`); learning curves, interval bars, a performance
 profile and the paper's Figure 1 (left). With several directories, variants are prefixed by
 their directory's name so that the experiments overlay. Given a training run's directory
-(metrics.jsonl), it draws that run's curves: return, entropy, losses and learning rate.
+(metrics.jsonl), it draws that run's curves: return, entropy, losses and learning rate; a
+population's (--pbt) as its best member and its members' mean, with its hyperparameter schedules
+(`rpo_jax.pbt_report`). Several run directories of one environment, or a directory holding them,
+overlay as experiments do.
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
-    CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, WANDB_DIR, RunDir,
+    CHECKPOINT_DIR, CONFIG_FILE, LINEAGE_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR,
+    WANDB_DIR, RunDir,
 )  # fmt: skip
 from rpo_jax.scores import kept_fraction, sample_std, tail_mean
 from rpo_jax.spec import parse
@@ -90,7 +95,9 @@ def read_results(directory: Path) -> list[dict]:
 # next to the results it was made from), a training run's (a run's report goes into its
 # directory), and the lock of a run writing there.
 EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
-RUN_FILES = (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR)
+RUN_FILES = (
+    CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR, LINEAGE_FILE,
+)  # fmt: skip
 
 
 def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
@@ -285,11 +292,10 @@ def _final_returns(runs: list[list[dict]]) -> dict:
     return {**{f"return_{name}": value for name, value in spread.items()}, "seeds": len(runs)}
 
 
-def build_run(run_dir: RunDir, out: Path) -> Path:
-    """Writes out/report.md and out/figures/ for one training run: its curves, one line per
-    sweep point (mean ± std over its seeds), and each point's final return."""
-    check_out(out, RUN_FILES)
-    record, rows = run_dir.read_config(), run_dir.read_metrics()
+def run_series(record: dict, rows: Sequence[dict], prefix: str = "") -> tuple[dict[str, list[list[dict]]], pbt_report.Runs, dict]:
+    """A training run's series (`prefix` + label -> its runs' rows in update order): one per sweep
+    point, or a population's "best of N" and "mean of N" (`pbt_report.replicated`); and, for
+    pbt_report, its populations' members and job by label (both empty without a population)."""
     swept = list(record["sweep"])
     point_of = {
         run["run"]: " ".join(f"{name}={run['hparams'][name]:g}" for name in swept) or record["algo"] for run in record["runs"]
@@ -299,10 +305,48 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         by_run[row["run"]].append(row)
     series: dict[str, list[list[dict]]] = defaultdict(list)
     for index, run_rows in by_run.items():
-        series[point_of[index]].append(run_rows)
+        series[prefix + point_of[index]].append(run_rows)
+    job = pbt_report.run_job(record)
+    if job is None or not series:
+        return series, {}, {}
+    members = {(record["env"], label): {run[0]["seed"]: run for run in runs} for label, runs in series.items()}
+    replaced = {}
+    for (env, label), seeds in members.items():
+        replaced.update(pbt_report.replicated(seeds, job, label, f"{env} {label}"))
+    return replaced, members, dict.fromkeys(series, job)
+
+
+def _run_counts(rows: Sequence[dict], members: pbt_report.Runs, jobs: dict) -> str:
+    """How many runs the report read, and in how many populations where they are some."""
+    sizes = [(len(seeds) // jobs[label].size, jobs[label].size) for (_, label), seeds in members.items()]
+    return ": ".join([f"{len({row['run'] for row in rows})} run(s)", *(f"{k} population(s) of {n}" for k, n in sizes)])
+
+
+def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None) -> Path:
+    """Writes out/report.md and out/figures/ for training runs of one environment: their curves,
+    one line per sweep point (mean ± std over its seeds) and each point's final return, prefixed
+    by the run directory's name where several overlay; a population's points are its best member
+    and its members' mean, one run per population, beside `pbt_report`'s section and figures.
+    `holder`: the directory that holds them, as the command named it (`out` may hold them too)."""
+    check_out(out, (*RUN_FILES, *(run_dir.path.name for run_dir in run_dirs if holder)))
+    records = [run_dir.read_config() for run_dir in run_dirs]
+    envs, names = unique(record["env"] for record in records), [run_dir.path.name for run_dir in run_dirs]
+    if len(set(names)) < len(names):
+        raise UsageError(f"the run directories' names {', '.join(names)} repeat; their series are named by them")
+    if len(envs) > 1:
+        raise UsageError(f"the runs train {', '.join(envs)}: a run report overlays runs of one environment; "
+                         "compare environments with rpo_jax.experiment")  # fmt: skip
+    series, members, jobs, counts = {}, {}, {}, []
+    for run_dir, record in zip(run_dirs, records):
+        rows = run_dir.read_metrics()
+        prefix = f"{run_dir.path.name}: " if len(run_dirs) > 1 else ""
+        found = run_series(record, rows, prefix)
+        for gathered, new in zip((series, members, jobs), found):
+            gathered.update(new)
+        counts.append(prefix + _run_counts(rows, found[1], found[2]))
     colours = figures.colours_for(list(series))
     (out / FIGURES_DIR).mkdir(parents=True, exist_ok=True)
-    title = f"{record['env']} {record['algo']}"
+    title = f"{envs[0]} {'/'.join(unique(record['algo'] for record in records))}"
     panels = [
         (("episode_return", "episode return"), ("policy_entropy", "policy entropy")),
         (("policy_loss", "policy loss"), ("value_loss", "value loss"), ("learning_rate", "learning rate")),
@@ -311,16 +355,19 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
         figures.curves(out / FIGURES_DIR / f"{name}.png", title, series, metrics, colours)
         for name, metrics in zip(("return-entropy", "losses"), panels)
     ]
+    written += pbt_report.write_figures(members, jobs, out / FIGURES_DIR)
     finals = {label: _final_returns(runs) for label, runs in series.items()}
     lines = [
-        f"{REPORT_TITLE}run of {record['env']} {record['algo']}",
+        f"{REPORT_TITLE}{'run' if len(run_dirs) == 1 else 'runs'} of {title}",
         "",
-        f"Made by `python -m rpo_jax.report {run_dir.path}` from metrics.jsonl ({len(by_run)} run(s)).",
+        f"Made by `python -m rpo_jax.report {holder or ' '.join(str(run_dir.path) for run_dir in run_dirs)}` "
+        f"from metrics.jsonl ({'; '.join(counts)}).",
         "",
-        "| runs | seeds | final return (mean ± sample std [95% CI]) |",
+        f"| runs | {'seeds or populations' if jobs else 'seeds'} | final return (mean ± sample std [95% CI]) |",
         "|---|---|---|",
         *(f"| {label} | {stats['seeds']} | {tables.cell(stats, 'return')} |" for label, stats in finals.items()),
         "",
+        *pbt_report.section(members, jobs),
         *(f"![{name}]({FIGURES_DIR}/{name})" for name in written),
         "",
     ]  # fmt: skip
@@ -328,12 +375,19 @@ def build_run(run_dir: RunDir, out: Path) -> Path:
     return out / REPORT_FILE
 
 
+def held_runs(directory: Path) -> list[RunDir]:
+    """The run directories in `directory` (by name), where it is neither a run's nor an experiment's."""
+    if not directory.is_dir() or (directory / RESULTS_FILE).is_file() or RunDir(directory).has_config():
+        return []
+    return [RunDir(path) for path in sorted(directory.iterdir()) if RunDir(path).has_config()]
+
+
 @dataclasses.dataclass(frozen=True)
 class ReportArgs:
-    """Tables and figures from experiment results, or from one training run: report.md and figures/."""
+    """Tables and figures from experiment results, or from training runs: report.md and figures/."""
 
     dirs: tyro.conf.Positional[Annotated[tuple[Path, ...], tyro.conf.arg(metavar="DIR", help_behavior_hint="(one or more)")]]
-    """experiment directories with results.csv, or one run directory"""
+    """experiment directories with results.csv, or run directories of one environment (or a directory holding them)"""
     out: Path | None = None
     """where report.md and figures/ go; None: DIR, when only one is given"""
     reference: Annotated[Path | None, tyro.conf.arg(metavar="CSV")] = None
@@ -346,12 +400,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     with command_failures() as exit:
         args = parse(ReportArgs, sys.argv[1:] if argv is None else argv, None, "python -m rpo_jax.report")
         if not args.dirs:
-            raise UsageError("give DIR: one or more experiment directories with results.csv, or one run directory")
+            raise UsageError("give DIR: one or more experiment directories with results.csv, or run directories")
         if args.out is None and len(args.dirs) > 1:
             raise UsageError("--out is needed when overlaying several directories")
-        run_dir = RunDir(args.dirs[0])
-        if len(args.dirs) == 1 and not (args.dirs[0] / RESULTS_FILE).is_file() and run_dir.has_config():
-            path = build_run(run_dir, args.out or args.dirs[0])
+        run_dirs = [RunDir(directory) for directory in args.dirs]
+        held = held_runs(args.dirs[0]) if len(args.dirs) == 1 else []
+        if not any((directory / RESULTS_FILE).is_file() for directory in args.dirs) and all(map(RunDir.has_config, run_dirs)):
+            path = build_run(run_dirs, args.out or args.dirs[0])
+        elif held:
+            path = build_run(held, args.out or args.dirs[0], args.dirs[0])
         else:
             path = build(args.out or args.dirs[0], args.dirs, args.reference)
         print(f"report: {path}")

@@ -1,7 +1,7 @@
 """Population-based training through the command line (--pbt): the lineage and the rows record the
 members' hyperparameters, several populations (--num-seeds) evolve each within itself, a killed
 population resumes bit for bit, 2 devices agree with 1, host-side environments train, the best
-member is the default policy, and bad flags are one line."""
+member is the default policy, the report counts populations, and bad flags are one line."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from point_mass import PointMass
 from test_devices import ROOT, params_of
 from test_host import SPEC, host_point_mass
 
-from rpo_jax import envs, experiment, export, pbt, policy, train
+from rpo_jax import envs, experiment, export, pbt, policy, report, train
 from rpo_jax.rundir import PARAMS_FILE, SUMMARY_FILE, RunDir
 from rpo_jax.spec import Pbt
 
@@ -128,6 +128,55 @@ def test_the_best_member_is_the_default_policy(finished):
     assert not np.array_equal(jax.tree.leaves(default)[0], jax.tree.leaves(policy.load_run(finished, other)[2])[0])
     exported, chosen_arrays = export.policy_arrays(finished), export.policy_arrays(finished, best)
     assert all(np.array_equal(exported[name], chosen_arrays[name]) for name in chosen_arrays)
+
+
+def test_the_report_of_a_population_run_counts_its_populations_and_draws_their_schedules(populations, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(populations, out)
+    assert report.main([str(out)]) == 0  # into the run directory, beside its pbt.jsonl
+    text = (out / "report.md").read_text()
+    assert "from metrics.jsonl (8 run(s): 2 population(s) of 4)." in text and "## Populations" in text
+    # Each population is one run of two series: summary.json's best member, and the members' mean.
+    summary = RunDir(populations).read_summary()
+    best = [summary["runs"][index]["final_return"] for index in summary["best_members"]]
+    assert f"| rpo (best of 4) | 2 | {np.mean(best):.2f} ± " in text and "| rpo (mean of 4) | 2 | " in text
+    for number, index in enumerate(summary["best_members"]):
+        population = f"population {number} (seeds {4 * number + 1}-{4 * number + 4})"
+        assert f"| test/point_mass | rpo | {population} | seed {index + 1} | {best[number]:.2f} |" in text
+    for name in ("return-entropy", "test_point_mass-rpo-schedules", "test_point_mass-rpo-returns"):
+        assert (out / "figures" / f"{name}.pdf").is_file() and f"(figures/{name}.png)" in text
+
+
+def test_a_directory_of_plain_and_population_runs_reports_them_overlaid(populations, tmp_path, capsys):
+    held = tmp_path / "runs"
+    shutil.copytree(populations, held / "pbt")
+    flags = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(UPDATES * BATCH), "--num-seeds", "2", "--quiet"]
+    assert train.main([*flags, "--out", str(held / "plain")]) == 0
+    assert report.main([str(held)]) == 0
+    text = (held / "report.md").read_text()
+    assert text.startswith("# Report: runs of test/point_mass rpo\n")
+    assert f"`python -m rpo_jax.report {held}` from metrics.jsonl (pbt: 8 run(s): 2 population(s) of 4; plain: 2 run(s))." in text
+    assert all(f"| {label} | 2 | " in text for label in ("pbt: rpo (best of 4)", "pbt: rpo (mean of 4)", "plain: rpo"))
+    assert (held / "figures" / "test_point_mass-pbt_rpo-schedules.png").is_file()
+    # A plain run's own report is as it was before populations were reported: nothing but its numbers vary.
+    assert report.main([str(held / "plain")]) == 0
+    lines = (held / "plain" / "report.md").read_text().split("\n")
+    assert lines[:6] == [
+        "# Report: run of test/point_mass rpo", "", f"Made by `python -m rpo_jax.report {held / 'plain'}` from metrics.jsonl "
+        "(2 run(s)).", "", "| runs | seeds | final return (mean ± sample std [95% CI]) |", "|---|---|---|",
+    ]  # fmt: skip
+    drawn = [f"![{name}.png](figures/{name}.png)" for name in ("return-entropy", "losses")]
+    assert lines[6].startswith("| rpo | 2 | ") and lines[7:] == ["", *drawn, ""]
+    # Runs of two environments do not overlay: one line, exit 2.
+    shutil.copytree(held / "plain", tmp_path / "other")
+    record = json.loads((tmp_path / "other" / "config.json").read_text())
+    (tmp_path / "other" / "config.json").write_text(json.dumps({**record, "env": "cartpole"}))
+    capsys.readouterr()
+    assert report.main([str(held / "plain"), str(tmp_path / "other"), "--out", str(tmp_path / "both")]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "error: the runs train test/point_mass, cartpole: a run report overlays runs of one environment; "
+        "compare environments with rpo_jax.experiment"
+    )
 
 
 def test_host_side_members_train_and_evolve_scored_by_evaluation(tmp_path):

@@ -578,7 +578,7 @@ def results_dir(tmp_path: Path) -> Path:
 def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys):
     directory = results_dir(tmp_path)
     assert report.main([]) == 2
-    assert one_line(capsys) == "error: give DIR: one or more experiment directories with results.csv, or one run directory"
+    assert one_line(capsys) == "error: give DIR: one or more experiment directories with results.csv, or run directories"
     results = directory / report.RESULTS_FILE
     good = results.read_text()
     results.write_text(good.replace(",policy_entropy", ",entropy"))
