@@ -146,9 +146,13 @@ def episodes_source(args: EvaluateArgs, run: int, as_in_training: bool) -> str:
     (`as_in_training`: as many episodes as its evaluations had)."""
     if args.seed is not None:
         return f"those of --seed {args.seed}"
-    logged = None
     run_dir = RunDir(args.trained.run_dir)
-    if as_in_training and not args.stochastic and run_dir.is_finished():
+    if not run_dir.read_config()["plan"].get("eval_every"):
+        return "those of its own seed (it trained without --eval-every)"
+    if not as_in_training:
+        return "those of its own seed (its evaluations in training had another --eval-episodes)"
+    logged = None
+    if not args.stochastic and run_dir.is_finished():
         logged = run_dir.read_summary()["runs"][run].get("eval_return")
     said = "" if logged is None else f" (logged {logged:.2f})"
     return f"those of its final evaluation in training{said}"

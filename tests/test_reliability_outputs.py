@@ -182,7 +182,7 @@ def test_evaluate_acts_deterministically_unless_stochastic_and_says_which(finish
         # The evaluation program of training, on the episodes of the run's final evaluation (seed 1's).
         _, means, _ = evaluation.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
         assert printed[mode] == f"{means[0]:.2f}"
-        assert line.endswith("over 3 episodes, those of its final evaluation in training"), line
+        assert line.endswith("over 3 episodes, those of its own seed (it trained without --eval-every)"), line
     assert printed["deterministic"] != printed["stochastic"]
 
 
