@@ -143,18 +143,17 @@ def run_command(args: EvaluateArgs) -> None:
 
 def episodes_source(args: EvaluateArgs, run: int, as_in_training: bool) -> str:
     """Which episodes a result is of, and what training logged of the same ones where it did
-    (`as_in_training`: as many episodes as its evaluations had)."""
+    (`as_in_training`: as many episodes as its evaluations had). Whether training evaluated is
+    read from summary.json, which records what happened, not from config.json's plan."""
     if args.seed is not None:
         return f"those of --seed {args.seed}"
     run_dir = RunDir(args.trained.run_dir)
-    if not run_dir.read_config()["plan"].get("eval_every"):
+    logged = run_dir.read_summary()["runs"][run].get("eval_return") if run_dir.is_finished() else None
+    if logged is None:
         return "those of its own seed (it trained without --eval-every)"
     if not as_in_training:
         return "those of its own seed (its evaluations in training had another --eval-episodes)"
-    logged = None
-    if not args.stochastic and run_dir.is_finished():
-        logged = run_dir.read_summary()["runs"][run].get("eval_return")
-    said = "" if logged is None else f" (logged {logged:.2f})"
+    said = "" if args.stochastic else f" (logged {logged:.2f})"
     return f"those of its final evaluation in training{said}"
 
 

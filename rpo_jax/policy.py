@@ -91,7 +91,17 @@ def load_runs(run_dir: str | Path) -> tuple[Config, dict[str, Any], Any, envs.Ru
             raise ValueError(f"it does not hold the {runs} run(s) of config.json")
     except (ValueError, KeyError, TypeError, IndexError) as error:  # msgpack's errors are ValueErrors
         raise UsageError(f"{directory.path / PARAMS_FILE} is damaged ({error}); rpo_jax.train did not write it whole") from None
-    return Config.from_dict(saved_run["config"]), saved_run["env_spec"], actor_params, stats
+    return trained_config(saved_run), saved_run["env_spec"], actor_params, stats
+
+
+def trained_config(saved_run: dict[str, Any]) -> Config:
+    """The run's Config as it was trained (config.json's trained_with record, where it has one):
+    a field edited afterwards that acting does not read (`check_acts_as_trained`) must not change
+    what an evaluation computes from it, such as the update count its keys fold in."""
+    config, trained = saved_run["config"], saved_run.get("trained_with")
+    if isinstance(trained, dict):
+        config = {**config, **{name: value for name, value in trained.items() if name in config}}
+    return Config.from_dict(config)
 
 
 def check_acts_as_trained(directory: RunDir, saved_run: dict[str, Any]) -> None:
