@@ -38,7 +38,7 @@ from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
     CHECKPOINT_DIR, CONFIG_FILE, LINEAGE_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR,
-    WANDB_DIR, RunDir,
+    VIDEOS_DIR, WANDB_DIR, RunDir,
 )  # fmt: skip
 from rpo_jax.scores import kept_fraction, sample_std, tail_mean
 from rpo_jax.spec import parse
@@ -97,6 +97,7 @@ def read_results(directory: Path) -> list[dict]:
 EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
 RUN_FILES = (
     CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR, LINEAGE_FILE,
+    VIDEOS_DIR,
 )  # fmt: skip
 
 

@@ -33,6 +33,7 @@ SUMMARY_FILE = "summary.json"
 PARAMS_FILE = "params.msgpack"
 TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
+VIDEOS_DIR = "videos"  # --capture-video's, one folder per run where several train together
 LOCK_FILE = ".lock"
 WANDB_DIR = "wandb"  # W&B makes it in the run directory (`tracking.WandbSink`) unless WANDB_DIR is set
 LINEAGE_FILE = "pbt.jsonl"

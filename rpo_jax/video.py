@@ -44,6 +44,7 @@ from rpo_jax import envs
 from rpo_jax.acting import ActFn
 from rpo_jax.errors import UsageError
 from rpo_jax.files import written_whole
+from rpo_jax.rundir import VIDEOS_DIR
 
 WIDTH, HEIGHT = 480, 360
 
@@ -146,7 +147,7 @@ class Capture:
     def paths(self, env_steps: int) -> list[str]:
         """The videos' paths after `env_steps` steps per run, relative to `out`, one per run."""
         folders = [[label] if len(self.labels) > 1 else [] for label in self.labels]
-        return [str(Path("videos", *folder, f"step_{env_steps:09d}.mp4")) for folder in folders]
+        return [str(Path(VIDEOS_DIR, *folder, f"step_{env_steps:09d}.mp4")) for folder in folders]
 
     def host_run(self, inputs: Any, key: jax.Array) -> list[Episode]:
         return host_episodes(self.env, lambda obs, key: self.act(inputs, obs, key), self.episodes, key)

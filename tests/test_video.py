@@ -16,7 +16,7 @@ from test_host import SPEC as HOST_SPEC
 from test_host import PointMassSim, host_point_mass
 from test_tools import read_wandb_run
 
-from rpo_jax import envs, runner, train, video
+from rpo_jax import envs, report, runner, train, video
 from rpo_jax.envs.host import HostEnv
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
@@ -167,6 +167,8 @@ def test_capture_video_draws_each_run_into_the_run_directory_tensorboard_and_wan
         assert [step["_step"] for step in logged] == [512, 1024]
         assert {step["video/episodes/_type"] for step in logged} == {"video-file"}
         assert len(list(path.parent.rglob("files/media/videos/**/*.mp4"))) == 2
+    # The report writes into the run directory beside its videos (a run's own files, not the user's).
+    assert report.main([str(out)]) == 0 and (out / "report.md").is_file()
 
 
 def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
