@@ -1,0 +1,66 @@
+"""Where the command line's train_seconds go: each chunk's time until its outputs are ready,
+against the host's work between chunks, on compare.py's CLI command (1M steps). CHUNKS=N in the
+environment asks for about N chunks instead of the runner's 50.
+
+    PYTHONPATH=.. python chunk_timing.py 256 /tmp/run          # num_envs, a new --out
+    CHUNKS=8 PYTHONPATH=.. python chunk_timing.py 256 /tmp/run2
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import jax
+
+from rpo_jax import runner, train
+
+FLAGS = [
+    "--env", "mjx-dmc/cartpole-balance", "--algo", "ppo", "--num-steps", "32", "--update-epochs", "4",
+    "--num-minibatches", "8", "--hidden-sizes", "64", "64", "--activation", "tanh", "--lr", "3e-4",
+    "--lr-schedule", "constant", "--no-normalize-reward", "--no-clip-value-loss", "--adam-eps", "1e-8",
+    "--ent-coef", "0", "--total-timesteps", "1048576", "--checkpoint-every", "0", "--no-compile-cache", "--quiet",
+]  # fmt: skip
+
+
+def timed_chunks(times: list[float]) -> None:
+    """Wraps the runner's compiled chunk to wait for its outputs and record how long it took."""
+    compile_runs = runner.compile_runs
+
+    def compile_timed(*args, **kwargs):
+        compiled = compile_runs(*args, **kwargs)
+        run_chunk = compiled.run_chunk
+
+        def timed(state):
+            start = time.perf_counter()
+            outputs = jax.block_until_ready(run_chunk(state))
+            times.append(time.perf_counter() - start)
+            return outputs
+
+        return dataclasses.replace(compiled, run_chunk=timed)
+
+    runner.compile_runs = compile_timed
+
+
+def main() -> None:
+    num_envs, out = sys.argv[1], sys.argv[2]
+    times: list[float] = []
+    timed_chunks(times)
+    if os.environ.get("CHUNKS"):
+        chunk_length = runner.chunk_length
+        runner.chunk_length = lambda n, target_chunks=50, at_most=None: chunk_length(n, int(os.environ["CHUNKS"]), at_most)
+    train.main([*FLAGS, "--num-envs", num_envs, "--out", out])
+    summary = json.loads(open(f"{out}/summary.json").read())
+    host = summary["train_seconds"] - sum(times)
+    print(
+        f"{len(times)} chunks: {sum(times):.3f} s until ready (median {sorted(times)[len(times) // 2]:.4f}), "
+        f"train_seconds {summary['train_seconds']:.3f}, the host's work between them {host:.3f} s, "
+        f"tracking_seconds {summary['tracking_seconds']:.3f}, {summary['sps']:,.0f} steps/s"
+    )
+
+
+if __name__ == "__main__":
+    main()
