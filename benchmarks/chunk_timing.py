@@ -13,17 +13,14 @@ import json
 import os
 import sys
 import time
+from pathlib import Path
 
 import jax
 
+from compare import cli_flags
 from rpo_jax import runner, train
 
-FLAGS = [
-    "--env", "mjx-dmc/cartpole-balance", "--algo", "ppo", "--num-steps", "32", "--update-epochs", "4",
-    "--num-minibatches", "8", "--hidden-sizes", "64", "64", "--activation", "tanh", "--lr", "3e-4",
-    "--lr-schedule", "constant", "--no-normalize-reward", "--no-clip-value-loss", "--adam-eps", "1e-8",
-    "--ent-coef", "0", "--total-timesteps", "1048576", "--checkpoint-every", "0", "--no-compile-cache", "--quiet",
-]  # fmt: skip
+TIMESTEPS = 1_048_576
 
 
 def timed_chunks(times: list[float]) -> None:
@@ -52,8 +49,8 @@ def main() -> None:
     if os.environ.get("CHUNKS"):
         chunk_length = runner.chunk_length
         runner.chunk_length = lambda n, target_chunks=50, at_most=None: chunk_length(n, int(os.environ["CHUNKS"]), at_most)
-    train.main([*FLAGS, "--num-envs", num_envs, "--out", out])
-    summary = json.loads(open(f"{out}/summary.json").read())
+    train.main([*cli_flags(int(num_envs), TIMESTEPS), "--out", out])
+    summary = json.loads((Path(out) / "summary.json").read_text())
     host = summary["train_seconds"] - sum(times)
     print(
         f"{len(times)} chunks: {sum(times):.3f} s until ready (median {sorted(times)[len(times) // 2]:.4f}), "

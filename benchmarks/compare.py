@@ -197,19 +197,23 @@ def measure_purejaxrl(num_envs: int, timesteps: int) -> dict[str, float]:
     return measure_compiled(PROGRAMS["purejaxrl"], loop.train, loop.num_updates * num_envs * NUM_STEPS)
 
 
+def cli_flags(num_envs: int, timesteps: int) -> list[str]:
+    """`python -m rpo_jax.train`'s flags for the compared work, but --out."""
+    return [
+        "--env", ENV, "--algo", "ppo", "--num-envs", str(num_envs),
+        "--num-steps", str(NUM_STEPS), "--update-epochs", str(EPOCHS), "--num-minibatches", str(MINIBATCHES),
+        "--hidden-sizes", *map(str, HIDDEN), "--activation", "tanh", "--lr", "3e-4", "--lr-schedule", "constant",
+        "--no-normalize-reward", "--no-clip-value-loss", "--adam-eps", "1e-8", "--ent-coef", "0",
+        "--total-timesteps", str(timesteps), "--checkpoint-every", "0", "--no-compile-cache", "--quiet",
+    ]  # fmt: skip
+
+
 def measure_rpo_jax_cli(num_envs: int, timesteps: int) -> dict[str, float]:
     import os
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
-        command = [
-            sys.executable, "-m", "rpo_jax.train", "--env", ENV, "--algo", "ppo", "--num-envs", str(num_envs),
-            "--num-steps", str(NUM_STEPS), "--update-epochs", str(EPOCHS), "--num-minibatches", str(MINIBATCHES),
-            "--hidden-sizes", *map(str, HIDDEN), "--activation", "tanh", "--lr", "3e-4", "--lr-schedule", "constant",
-            "--no-normalize-reward", "--no-clip-value-loss", "--adam-eps", "1e-8", "--ent-coef", "0",
-            "--total-timesteps", str(timesteps), "--checkpoint-every", "0", "--no-compile-cache", "--quiet",
-            "--out", str(out),
-        ]  # fmt: skip
+        command = [sys.executable, "-m", "rpo_jax.train", *cli_flags(num_envs, timesteps), "--out", str(out)]
         env = {**os.environ, "JAX_LOG_COMPILES": "1"}
         done = subprocess.run(command, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
         summary = json.loads((out / "summary.json").read_text())

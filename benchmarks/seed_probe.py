@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import tempfile
 
 import numpy as np
 
@@ -30,13 +31,13 @@ def pool_seeds(seeds: list[int]) -> list[int]:
         build(self, task, num_envs, seed)
 
     dmc.DmcSimulators.__init__ = recorded
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as tmp:
-        flags = ["--env", TASK, "--preset", "paper", "--num-seeds", str(len(seeds)), "--seed", str(seeds[0])]
-        flags += ["--num-envs", str(NUM_ENVS), "--num-steps", "256", "--total-timesteps", "2048", "--quiet"]
-        train.main([*flags, "--no-compile-cache", "--out", f"{tmp}/run"])
-    dmc.DmcSimulators.__init__ = build
+    flags = ["--env", TASK, "--preset", "paper", "--num-seeds", str(len(seeds)), "--seed", str(seeds[0])]
+    flags += ["--num-envs", str(NUM_ENVS), "--num-steps", "256", "--total-timesteps", "2048", "--quiet"]
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            train.main([*flags, "--no-compile-cache", "--out", f"{tmp}/run"])
+    finally:
+        dmc.DmcSimulators.__init__ = build
     return drawn[: len(seeds)]
 
 

@@ -280,8 +280,13 @@ class DrawnFrames(Sequence[np.ndarray]):
         return self.draw(0, self.count)
 
     def __getitem__(self, index: Any) -> Any:
-        if isinstance(index, slice):
-            return list(self)[index]
+        if isinstance(index, slice):  # only the frames the slice spans are drawn
+            wanted = range(self.count)[index]
+            if not wanted:
+                return []
+            low = min(wanted)
+            drawn = list(self.draw(low, max(wanted) + 1))
+            return [drawn[i - low] for i in wanted]
         index = range(self.count)[index]  # from the end where negative; IndexError past either end
         with contextlib.closing(self.draw(index, index + 1)) as frames:
             return next(frames)

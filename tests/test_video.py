@@ -314,3 +314,17 @@ def test_a_deepmind_control_task_draws_itself_with_envpool():
     assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3) and frames[0].mean() > 30
     assert not np.array_equal(frames[0], frames[-1])  # the cart moved
     assert simulator.fps == 100.0  # dm_control's cartpole steps 10 ms
+
+
+def test_drawn_frames_draw_only_the_frames_read():
+    calls = []
+
+    def draw(start, stop):
+        calls.append((start, stop))
+        yield from range(start, stop)
+
+    frames = video.DrawnFrames(10, draw)
+    assert frames[2:7:2] == [2, 4, 6] and calls == [(2, 7)]
+    assert frames[-1] == 9 and calls[-1] == (9, 10)
+    assert frames[5:5] == [] and len(calls) == 2
+    assert frames[::-3] == [9, 6, 3, 0] and list(frames) == list(range(10))
