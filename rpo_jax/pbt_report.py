@@ -58,8 +58,7 @@ def population_jobs(directory: Path, prefix: str = "") -> dict[str, PopulationJo
     try:
         jobs = json.loads(path.read_text()).get("jobs", [])
         populations = [job for job in jobs if job.get("population")]
-        explored = [tuple(part.partition("=")[0] for part in job["pbt_fields"].split(",")) for job in populations]
-        return {prefix + job["name"]: PopulationJob(job["population"], fields) for job, fields in zip(populations, explored)}
+        return {prefix + job["name"]: population_job(job) for job in populations}
     except (ValueError, AttributeError, KeyError, TypeError) as error:
         raise UsageError(f"{path}: not an experiment's record ({error!r}); rpo_jax.experiment writes it") from None
 
@@ -67,9 +66,14 @@ def population_jobs(directory: Path, prefix: str = "") -> dict[str, PopulationJo
 def run_job(record: dict) -> PopulationJob | None:
     """The population of a training run, from its config.json `record` (None: it has none)."""
     evolution = record["plan"].get("pbt")
-    if not evolution:
-        return None
-    return PopulationJob(evolution["population"], tuple(part.partition("=")[0] for part in evolution["pbt_fields"].split(",")))
+    return population_job(evolution) if evolution else None
+
+
+def population_job(recorded: dict) -> PopulationJob:
+    """A population's size and explored fields, from the `population` and `pbt_fields`
+    ("name=low:high,...") an experiment's job or a run's plan records."""
+    fields = tuple(part.partition("=")[0] for part in recorded["pbt_fields"].split(","))
+    return PopulationJob(recorded["population"], fields)
 
 
 def split_populations(runs: dict[float, list[dict]], size: int, name: str) -> list[list[list[dict]]]:
