@@ -1,4 +1,4 @@
-"""rpo_jax's update with one change switched back at a time, timed in interleaved rounds in one process.
+"""rpo_jax's update with one change at a time, switched back or tried, timed in interleaved rounds in one process.
 
     python benchmarks/ablate.py --num-envs 256 1024 --rounds 7
 
@@ -6,15 +6,21 @@ compare.py's work at each size. `current`: the update as it is; `gather every st
 auto-reset as it was, gathering every environment's state from the pool of starts and selecting
 it at every step (`VectorEnv.step` before the `lax.cond`); `batch carried`: the minibatch epochs
 as they were, carrying the batch through the epochs' scan instead of closing over it; `with the
-finiteness diagnostics`: the update as the command line runs it, counting non-finite numbers. Each
-variant is its own compiled whole update, called on the state after one update.
+finiteness diagnostics`: the update as the command line runs it, counting non-finite numbers;
+`perturbation drawn`: PPO as it was, drawing RPO's noise of half-width 0 in every gradient step
+(RPO with alpha 0: the same numbers); tried: `minibatches unrolled by 2` and `all minibatches
+unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' first layers one
+matmul, their second layers one batched matmul). Each variant is its own compiled whole update,
+called on the state after one update.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import jax
@@ -22,8 +28,9 @@ import jax.numpy as jnp
 
 from compare import ENV, NUM_STEPS, rpo_config
 from phases import interleaved
-from rpo_jax import envs, ppo
+from rpo_jax import envs, loss, ppo
 from rpo_jax.envs import wrappers
+from rpo_jax.networks import ACTIVATIONS
 
 
 def step_gathering_every_step(self: Any, state: Any, action: jax.Array) -> Any:
@@ -56,12 +63,63 @@ def epochs_carrying_batch(trainer: Any, hparams: Any, params: Any, opt_state: An
     return params, opt_state, metrics
 
 
-def whole_update(num_envs: int, patch: Callable[[], Callable[[], None]] | None, diagnosed: bool = False) -> Callable[[], Any]:
-    """The whole update compiled with `patch` applied (patch() returns its undo); `diagnosed`:
-    as the command line runs it, with the finiteness counts (`scan_diagnosed_updates`)."""
+def epochs_unrolled(unroll: int | bool) -> Callable[..., Any]:
+    """The minibatch epochs with the epoch's scan over minibatches unrolled `unroll` times (True: all)."""
+
+    def minibatch_epochs(trainer: Any, hparams: Any, params: Any, opt_state: Any, batch: Any, key: jax.Array) -> Any:
+        config = trainer.config
+
+        def minibatch(carry, inputs):
+            params, opt_state, metrics = ppo.gradient_step(trainer, hparams, *carry, *inputs)
+            return (params, opt_state), metrics
+
+        def epoch(carry, key):
+            permute_key, loss_key = jax.random.split(key)
+            permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
+            minibatches = jax.tree.map(lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
+            loss_keys = jax.random.split(loss_key, config.num_minibatches)
+            return jax.lax.scan(minibatch, carry, (minibatches, loss_keys), unroll=unroll)
+
+        (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, config.update_epochs))
+        return params, opt_state, metrics
+
+    return minibatch_epochs
+
+
+def fused_forward(params: dict, obs: jax.Array, activation: str) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The actor's location and log-scale and the critic's value, both 2-hidden-layer networks
+    of equal widths computed together: the first layers as one matmul of the concatenated
+    kernels, the second as one batched matmul of the stacked ones."""
+    act = ACTIVATIONS[activation]
+    actor, critic = params["actor"]["params"]["MLP_0"], params["critic"]["params"]["MLP_0"]
+    first = {part: jnp.concatenate([actor["Dense_0"][part], critic["Dense_0"][part]], -1) for part in ("kernel", "bias")}
+    hidden = act(obs @ first["kernel"] + first["bias"])
+    hidden = jnp.stack(jnp.split(hidden, 2, -1))
+    second = {part: jnp.stack([actor["Dense_1"][part], critic["Dense_1"][part]]) for part in ("kernel", "bias")}
+    hidden = act(jnp.einsum("nbi,nio->nbo", hidden, second["kernel"]) + second["bias"][:, None])
+    loc = hidden[0] @ actor["Dense_2"]["kernel"] + actor["Dense_2"]["bias"]
+    value = (hidden[1] @ critic["Dense_2"]["kernel"] + critic["Dense_2"]["bias"])[..., 0]
+    return loc, params["actor"]["params"]["log_std"], value
+
+
+def loss_with_fused_forward(params: dict, actor: Any, critic: Any, batch: Any, key: jax.Array, config: Any, *args: Any) -> Any:
+    """`loss.ppo_loss` given the fused pass's outputs in place of the two networks' calls."""
+    loc, log_scale, value = fused_forward(params, batch.obs, config.activation)
+    fused_actor = SimpleNamespace(apply=lambda _params, _obs: (loc, log_scale))
+    fused_critic = SimpleNamespace(apply=lambda _params, _obs: value)
+    return loss.ppo_loss(params, fused_actor, fused_critic, batch, key, config, *args)
+
+
+def whole_update(
+    num_envs: int, patch: Callable[[], Callable[[], None]] | None, diagnosed: bool = False, **config_changes: Any
+) -> Callable[[], Any]:
+    """The whole update compiled with `patch` applied (patch() returns its undo) and the config's
+    `config_changes`; `diagnosed`: as the command line runs it, with the finiteness counts
+    (`scan_diagnosed_updates`)."""
     undo = patch() if patch else None
     try:
-        trainer = ppo.make_trainer(rpo_config(num_envs, num_envs * NUM_STEPS), envs.make_env(ENV))
+        config = dataclasses.replace(rpo_config(num_envs, num_envs * NUM_STEPS), **config_changes)
+        trainer = ppo.make_trainer(config, envs.make_env(ENV))
         program = (lambda s: trainer.scan_diagnosed_updates(s, 1)[0]) if diagnosed else (lambda s: trainer.update(s)[0])
         update = jax.jit(program).lower(state := jax.jit(trainer.init)(jax.random.PRNGKey(0))).compile()
     finally:
@@ -84,6 +142,9 @@ VARIANTS = {
     "current": None,
     "gather every step": patched(wrappers.VectorEnv, "step", step_gathering_every_step),
     "batch carried": patched(ppo, "minibatch_epochs", epochs_carrying_batch),
+    "minibatches unrolled by 2": patched(ppo, "minibatch_epochs", epochs_unrolled(2)),
+    "all minibatches unrolled": patched(ppo, "minibatch_epochs", epochs_unrolled(True)),
+    "actor and critic fused": patched(ppo, "ppo_loss", loss_with_fused_forward),
 }
 
 
@@ -96,6 +157,7 @@ def main() -> int:
     for num_envs in args.num_envs:
         programs = {name: whole_update(num_envs, patch) for name, patch in VARIANTS.items()}
         programs["with the finiteness diagnostics"] = whole_update(num_envs, None, diagnosed=True)
+        programs["perturbation drawn"] = whole_update(num_envs, None, algo="rpo", rpo_alpha=0.0)
         times = interleaved(programs, args.rounds)
         current = statistics.median(times["current"])
         for name, seconds in times.items():

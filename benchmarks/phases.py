@@ -13,7 +13,8 @@ The arithmetic rate: the floating-point operations of one call of each epochs pr
 cost analysis of the compiled program counts them, over its median time; against a float32
 matmul of 2048 x 2048 on this machine (the rate XLA reaches on dense work) and the theoretical
 peak: cores x 32 float32 FLOPs a cycle (one 512-bit fused multiply-add a cycle, as Zen 4 issues
-it on its two 256-bit pipes) x the clock in /proc/cpuinfo.
+it on its two 256-bit pipes) x the clock in /proc/cpuinfo. And the kernels XLA runs for one
+gradient step of each (`gradient_step_kernels`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import argparse
 import functools
 import json
 import os
+import re
 import statistics
 import sys
 import time
@@ -68,13 +70,38 @@ def interleaved(programs: dict[str, Callable[[], Any]], rounds: int) -> dict[str
     return times
 
 
+def compiled(run: Callable[[], Any]) -> Any:
+    """The compiled program that `run`, a partial of a jitted function, calls."""
+    return run.func.lower(*run.args).compile()  # type: ignore[attr-defined]
+
+
 def epochs_flops(run: Callable[[], Any]) -> float:
     """XLA's count of the floating-point operations of one call of the epochs program `run`
     calls. Its cost analysis counts a loop's body once: the body, one gradient step, is counted
     and multiplied by the steps the loops run (epochs x minibatches)."""
-    cost = run.func.lower(*run.args).compile().cost_analysis()  # type: ignore[attr-defined]
+    cost = compiled(run).cost_analysis()
     steps = EPOCHS * MINIBATCHES
     return steps * float((cost[0] if isinstance(cost, list) else cost)["flops"])
+
+
+# Instructions of optimised HLO that launch no work of their own on the CPU.
+BOOKKEEPING = {"parameter", "get-tuple-element", "tuple", "constant", "bitcast", "copy"}
+
+
+def gradient_step_kernels(run: Callable[[], Any]) -> int:
+    """The kernels XLA runs for one gradient step of the epochs program `run` calls: the
+    instructions (fusions, matmuls, inner loops) of its largest loop body, the minibatch step,
+    but for bookkeeping. With minibatches of a few hundred samples each kernel's start is a
+    cost of its own, so their number tells two programs of the same arithmetic apart."""
+    hlo = compiled(run).as_text()
+    bodies = set(re.findall(r"body=(%[\w.\-]+)", hlo))
+    counts = [0]
+    for block in hlo.split("\n\n"):
+        lines = block.strip().splitlines()
+        if lines and lines[0].split(" ")[0] in bodies:
+            ops = (re.search(r"= \S+ ([\w\-]+)\(", line) for line in lines[1:])
+            counts.append(sum(1 for op in ops if op and op.group(1) not in BOOKKEEPING))
+    return max(counts)
 
 
 def network_flops(num_envs: int) -> float:
@@ -112,7 +139,9 @@ def measure(num_envs: int, rounds: int) -> dict[str, Any]:
     programs = {f"rpo_jax {name}": run for name, run in ours.items()} | {f"purejaxrl {n}": r for n, r in theirs.items()}
     flops = {"rpo_jax": epochs_flops(ours["minibatch epochs"]), "purejaxrl": epochs_flops(theirs["minibatch epochs"])}
     flops["networks (from their sizes)"] = network_flops(num_envs)
-    return {"seconds": interleaved(programs, rounds), "epochs_flops": flops}
+    epochs = {"rpo_jax": ours["minibatch epochs"], "purejaxrl": theirs["minibatch epochs"]}
+    kernels = {name: gradient_step_kernels(run) for name, run in epochs.items()}
+    return {"seconds": interleaved(programs, rounds), "epochs_flops": flops, "gradient_step_kernels": kernels}
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -137,6 +166,11 @@ def markdown(results: dict[str, Any]) -> str:
             rate = flops / statistics.median(seconds)
             fractions = f"{rate / matmul:.1%} | {rate / peak:.1%}"
             lines.append(f"| {num_envs} | {name} | {flops / 1e9:.2f} | {rate / 1e9:.1f} | {fractions} |")
+    lines.append("")
+    for num_envs, result in results["sizes"].items():
+        kernels = result["gradient_step_kernels"]
+        counts = f"rpo_jax {kernels['rpo_jax']}, loop {kernels['purejaxrl']}"
+        lines.append(f"{num_envs} environments, kernels in one gradient step: {counts}")
     return "\n".join(lines)
 
 

@@ -128,14 +128,17 @@ def ppo_loss(
     if config.augmentation == "rad":
         obs = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
     loc, log_scale = actor.apply(params["actor"], obs)
-    dist = policy_distribution(perturb_location(loc, perturb_key, hparams.rpo_alpha), log_scale, config.dist)
+    # Only RPO reads alpha. The others' is 0, whose draw changes no number (loc + 0 is loc) but
+    # costs a random draw and a second log-probability in every gradient step.
+    perturbed = "rpo_alpha" in config.algorithm.reads
+    policy_loc = perturb_location(loc, perturb_key, hparams.rpo_alpha) if perturbed else loc
+    dist = policy_distribution(policy_loc, log_scale, config.dist)
     log_probs = dist.log_prob(batch.actions)
     entropy = dist.entropy().mean()
 
     ratio = jnp.exp(log_probs - batch.log_probs)
-    unperturbed_log_ratio = jax.lax.stop_gradient(
-        policy_distribution(loc, log_scale, config.dist).log_prob(batch.actions) - batch.log_probs
-    )
+    unperturbed_log_probs = policy_distribution(loc, log_scale, config.dist).log_prob(batch.actions) if perturbed else log_probs
+    unperturbed_log_ratio = jax.lax.stop_gradient(unperturbed_log_probs - batch.log_probs)
     advantages = batch.advantages
     if config.norm_adv:
         advantages = normalize_advantages(advantages, axis_name)

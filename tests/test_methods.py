@@ -124,7 +124,7 @@ def test_rad_with_unit_bounds_and_drac_with_zero_weight_are_ppo():
 
 
 def test_a_sweep_equals_its_runs_made_one_by_one():
-    config = dataclasses.replace(TINY, total_timesteps=8 * 16 * 3)
+    config = dataclasses.replace(TINY, algo="rpo", total_timesteps=8 * 16 * 3)
     train_fn = ppo.make_train(config, PointMass())
     alphas, seeds = (0.1, 1.0), (0, 1)
     grid = [(alpha, seed) for alpha in alphas for seed in seeds]

@@ -279,6 +279,17 @@ def test_rpo_loss_depends_on_perturbation_key_only_when_alpha_positive(loss_setu
     assert np.array_equal(ppo_losses[0], ppo_losses[1])
 
 
+def test_only_rpo_draws_the_perturbation(loss_setup, monkeypatch):
+    # The others train with alpha 0, whose draw would change no number but cost one in every
+    # gradient step (test_rpo_with_zero_alpha_is_bit_identical_... shows the numbers agree).
+    actor, critic, params, batch = loss_setup
+    drawn = []
+    monkeypatch.setattr(loss_module, "perturb_location", lambda loc, key, alpha: drawn.append(alpha) or loc)
+    for algo in ("ppo", "rad", "drac", "rpo"):
+        ppo_loss(params, actor, critic, batch, jax.random.PRNGKey(0), dataclasses.replace(LOSS_CONFIG, algo=algo))
+    assert len(drawn) == 1
+
+
 def test_approx_kl_ignores_the_perturbation(loss_setup):
     # approx_kl must measure the unperturbed policy: with alpha = 2 the perturbed ratio alone
     # would give a KL of order alpha^2 / 6.
