@@ -7,10 +7,22 @@ os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_opti
 
 # rpo_jax.envs chooses MuJoCo's offscreen OpenGL backend when there is no display, which only
 # works before MuJoCo is first imported; some test modules import mujoco before rpo_jax.
+import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import rpo_jax.envs  # noqa: E402, F401
+from rpo_jax import runner  # noqa: E402
 from rpo_jax.envs import registry  # noqa: E402
+
+# One persistent compile cache for the whole run, the command line's own (runner.compile_cache_dir),
+# shared by both pytest workers, the commands the tests start and the docs' examples: many tests
+# train the same small programs, so on a fresh machine (an empty cache) each is compiled once per
+# run instead of once per test. Every program is kept, not only those over a second: the tests'
+# programs are small and each command's process would compile them all again.
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+os.environ["JAX_COMPILATION_CACHE_DIR"] = str(runner.compile_cache_dir())
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+runner.use_compile_cache(runner.compile_cache_dir())
 
 
 @pytest.fixture
@@ -18,3 +30,23 @@ def isolated_registry(monkeypatch):
     """The registry, restored after the test: what the test registers is gone afterwards."""
     monkeypatch.setattr(registry, "_REGISTRY", dict(registry._REGISTRY))
     return registry
+
+
+# The files whose tests take longest on a fresh machine, longest first (measured cold: docs
+# examples ~240 s of one worker, the others 60-130 s). pytest -n 2 --dist loadfile hands each
+# worker whole files in collection order; started last, a long file would leave the other
+# worker idle while it runs, so these start first and the short files fill in around them.
+LONGEST_FILES = ["test_docs_examples.py", "test_devices.py", "test_training.py"]
+
+
+def pytest_configure(config):
+    if getattr(config.option, "dist", "no") == "loadfile":
+        config.option.loadscopereorder = False  # xdist's default order, most tests first, would override ours
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FILES.index(name) if name in LONGEST_FILES else len(LONGEST_FILES)
+
+    items.sort(key=rank)  # stable: the other files and every file's tests keep their order

@@ -231,8 +231,9 @@ def test_one_run_is_trained_unbatched_and_several_vmapped():
 
 def cpu_devices_command(*args: str) -> None:
     """`python -m rpo_jax.train ARGS` in a process of its own, whose CPU --cpu-devices splits as JAX starts."""
-    environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
-    environment |= {"PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+    # The suite's XLA_FLAGS (tests/conftest.py) stay: they force no device count, and without them
+    # XLA's optimisation passes would make compiling slower.
+    environment = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
     command = [sys.executable, "-m", "rpo_jax.train", *args]
     result = subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -12,10 +12,13 @@ commands at CPU-test sizes (`--total-timesteps 4096 --num-envs 8`). Each OLD mus
 block, so an override cannot go stale silently. The runnable blocks of one page run in order in
 one fresh directory (a later block may read the run an earlier one wrote), bash blocks with
 `bash -euo pipefail`, Python blocks with this interpreter, both with the repository on
-PYTHONPATH, the interpreter's directory first on PATH (`python`, `rpo-jax`) and a persistent
-compile cache of their own shared by the pages: compiling is most of an example's time, so pages
-whose examples train the same configuration (README.md's, the first run's and the library's)
-compile it once. Every page runs in the default suite, so a broken example fails `make test`.
+PYTHONPATH and the interpreter's directory first on PATH (`python`, `rpo-jax`). They share the
+suite's persistent compile cache (tests/conftest.py): compiling is most of an example's time, so
+pages whose examples train the same configuration (README.md's, the first run's and the library's)
+compile it once. A training command that an earlier page ran, word for word but for its --out
+(README.md's is the first run's and the library's), is not run again: that run's directory is
+copied (training is deterministic; the copy is the directory as that page left it), and the rest
+of the page runs on it. Every page runs in the default suite, so a broken example fails `make test`.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -77,27 +82,17 @@ def examples(page: Path) -> list[Example]:
     return found
 
 
-def run_example(example: Example, directory: Path, cache: Path) -> subprocess.CompletedProcess:
+def run_example(example: Example, directory: Path) -> subprocess.CompletedProcess:
     interpreter = Path(sys.executable)
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
         "PATH": os.pathsep.join([str(interpreter.parent), os.environ["PATH"]]),
-        "XDG_CACHE_HOME": str(cache),  # the command line's compile cache
-        "JAX_COMPILATION_CACHE_DIR": str(cache / "rpo_jax" / "jax"),  # the same one for the Python examples
-        # Every program, not only those that took a second to compile: the pages evaluate and
-        # load the same runs, whose small programs add up over a page's processes.
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
     }
     command = (
         ["bash", "-euo", "pipefail", "-c", example.code] if example.language == "bash" else [str(interpreter), "-c", example.code]
     )
     return subprocess.run(command, cwd=directory, env=env, capture_output=True, text=True, timeout=600)
-
-
-@pytest.fixture(scope="module")
-def compile_cache(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("xdg-cache")
 
 
 def test_the_front_page_and_the_docs_have_runnable_examples_of_both_kinds():
@@ -113,11 +108,51 @@ def test_an_override_that_no_longer_matches_is_an_error(tmp_path):
         examples(page)
 
 
+TRAINING = ("python", "-m", "rpo_jax.train")
+
+
+def training(line: str) -> tuple[tuple[str, ...], str] | None:
+    """(its words less the --out value, the --out value) of a bash line that is one plain
+    `python -m rpo_jax.train ... --out DIR` (no operator, variable or substitution), None for
+    any other line. A run's files do not depend on where --out puts them."""
+    lexer = shlex.shlex(line, posix=True, punctuation_chars=True)
+    lexer.whitespace_split = True
+    words = tuple(lexer)
+    if any(set(word) & set("();<>|&$`") for word in words) or words[:3] != TRAINING or "--out" not in words[:-1]:
+        return None
+    out = words.index("--out") + 1
+    return words[:out] + words[out + 1 :], words[out]
+
+
+def test_only_a_plain_training_command_is_recognised_with_its_out():
+    words, out = training("python -m rpo_jax.train --env cartpole --out runs/a  # a comment")
+    assert (words, out) == (("python", "-m", "rpo_jax.train", "--env", "cartpole", "--out"), "runs/a")
+    assert training("python -m rpo_jax.train  --env cartpole --out runs/b\n") == (words, "runs/b")
+    assert training("python -m rpo_jax.train --env point_mass --out runs/a")[0] != words
+    for other in ("python -m rpo_jax.train --env nope || test $? -eq 2", "python -m rpo_jax.train --out $OUT",
+                  "python -m rpo_jax.train --out a; rm -r a", "python -m rpo_jax.evaluate --out a",
+                  "python -m rpo_jax.train --env cartpole"):  # fmt: skip
+        assert training(other) is None, other
+
+
+@pytest.fixture(scope="module")
+def trained() -> dict[tuple[str, ...], Path]:
+    """The run directory that each training command an earlier page ran wrote, by its words less --out's value."""
+    return {}
+
+
 @pytest.mark.parametrize("page", [page for page in PAGES if examples(page)], ids=lambda page: page.relative_to(ROOT).as_posix())
-def test_the_examples_of_a_page_run(page, tmp_path, compile_cache):
+def test_the_examples_of_a_page_run(page, tmp_path, trained):
     for example in examples(page):
-        result = run_example(example, tmp_path, compile_cache)
+        lines = example.code.splitlines(keepends=True) if example.language == "bash" else []
+        trainings = {line: training(line) for line in lines if training(line)}
+        repeated = [line for line, (words, _) in trainings.items() if words in trained]
+        for line in repeated:  # run by an earlier page: a copy of its run directory, not a second run
+            shutil.copytree(trained[trainings[line][0]], tmp_path / trainings[line][1])
+        code = "".join(line for line in lines if line not in repeated) if repeated else example.code
+        result = run_example(dataclasses.replace(example, code=code), tmp_path)
         assert result.returncode == 0, (
             f"{page.relative_to(ROOT)}:{example.line}: the {example.language} example exited {result.returncode}\n"
             f"{example.code}\n--- its output (last 3000 characters) ---\n{(result.stdout + result.stderr)[-3000:]}"
         )
+        trained.update({words: tmp_path / out for words, out in trainings.values() if words not in trained})

@@ -281,8 +281,9 @@ def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
 def train_on_cpu_devices(count: int, *args: str, command: str = "rpo_jax.train") -> subprocess.CompletedProcess:
     """`python -m COMMAND ARGS --cpu-devices COUNT` in a process of its own (the CPU is split
     as JAX starts), where the point mass is importable as point_mass:PointMass."""
-    environment = {key: value for key, value in os.environ.items() if key != "XLA_FLAGS"}
-    environment |= {"PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
+    # The suite's XLA_FLAGS (tests/conftest.py) stay: they force no device count, and without them
+    # XLA's optimisation passes would make compiling slower.
+    environment = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{ROOT / 'tests'}", "JAX_PLATFORMS": "cpu"}
     command = [sys.executable, "-m", command, *args, "--cpu-devices", str(count)]
     return subprocess.run(command, env=environment, capture_output=True, text=True, timeout=600)
 
