@@ -10,6 +10,7 @@ sweepable hyperparameters (`Hyperparams`) are read here.
 
 from __future__ import annotations
 
+import distrax
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -102,6 +103,21 @@ def drac_regulariser(
     return policy_regulariser + value_regulariser
 
 
+def trained_policy(
+    loc: jax.Array, log_scale: jax.Array, actions: jax.Array, key: jax.Array, config: Config, hparams: Hyperparams
+) -> tuple[distrax.Distribution, jax.Array, jax.Array]:
+    """The policy the loss trains on a minibatch [B] (RPO's with its location perturbed), the
+    stored actions' log-probabilities [B] under it, and under the unperturbed policy. Only RPO
+    reads alpha: the others' is 0, whose draw would change no number (loc + 0 is loc) but cost a
+    random draw and a second log-probability in every gradient step."""
+    policy = policy_distribution(loc, log_scale, config.dist)
+    if "rpo_alpha" not in config.algorithm.reads:
+        log_probs = policy.log_prob(actions)
+        return policy, log_probs, log_probs
+    perturbed = policy_distribution(perturb_location(loc, key, hparams.rpo_alpha), log_scale, config.dist)
+    return perturbed, perturbed.log_prob(actions), policy.log_prob(actions)
+
+
 def ppo_loss(
     params: dict,
     actor: Actor,
@@ -128,16 +144,10 @@ def ppo_loss(
     if config.augmentation == "rad":
         obs = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
     loc, log_scale = actor.apply(params["actor"], obs)
-    # Only RPO reads alpha. The others' is 0, whose draw changes no number (loc + 0 is loc) but
-    # costs a random draw and a second log-probability in every gradient step.
-    perturbed = "rpo_alpha" in config.algorithm.reads
-    policy_loc = perturb_location(loc, perturb_key, hparams.rpo_alpha) if perturbed else loc
-    dist = policy_distribution(policy_loc, log_scale, config.dist)
-    log_probs = dist.log_prob(batch.actions)
+    dist, log_probs, unperturbed_log_probs = trained_policy(loc, log_scale, batch.actions, perturb_key, config, hparams)
     entropy = dist.entropy().mean()
 
     ratio = jnp.exp(log_probs - batch.log_probs)
-    unperturbed_log_probs = policy_distribution(loc, log_scale, config.dist).log_prob(batch.actions) if perturbed else log_probs
     unperturbed_log_ratio = jax.lax.stop_gradient(unperturbed_log_probs - batch.log_probs)
     advantages = batch.advantages
     if config.norm_adv:

@@ -352,7 +352,7 @@ def test_each_minibatch_of_each_epoch_gets_fresh_perturbation(recorded_update):
 def test_rollout_log_probs_are_unperturbed(recorded_update):
     _, callers, metrics = recorded_update
     # The perturbation is only ever traced from inside the loss, never from the rollout.
-    assert callers and set(callers) == {"ppo_loss"}
+    assert callers and set(callers) == {"trained_policy"}  # the loss's, in loss.py
     # With the policy held still (lr 1e-10), approx_kl compares the unperturbed policy with the
     # stored rollout log-probs. Had the rollout stored log-probs of a location perturbed by
     # U(-100, 100), it would be of order 100^2; stored correctly, it is rounding noise.
