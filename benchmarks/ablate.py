@@ -43,20 +43,30 @@ def step_gathering_every_step(self: Any, state: Any, action: jax.Array) -> Any:
     return state.replace(envs=envs_state, next_start=next_start), ts.replace(obs=obs, final_obs=ts.obs)
 
 
-def epochs_carrying_batch(trainer: Any, hparams: Any, params: Any, opt_state: Any, batch: Any, key: jax.Array) -> Any:
-    config = trainer.config
+def minibatch_step(trainer: Any, hparams: Any) -> Callable[..., Any]:
+    """The epochs' scan body: one `ppo.gradient_step` on a minibatch and its loss key."""
 
-    def minibatch(carry, inputs):
+    def step(carry, inputs):
         params, opt_state, metrics = ppo.gradient_step(trainer, hparams, *carry, *inputs)
         return (params, opt_state), metrics
 
+    return step
+
+
+def shuffled_minibatches(config: Any, batch: Any, key: jax.Array) -> tuple[Any, jax.Array]:
+    """One epoch's minibatches [num_minibatches, B / num_minibatches, ...] and their loss keys."""
+    permute_key, loss_key = jax.random.split(key)
+    permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
+    minibatches = jax.tree.map(lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
+    return minibatches, jax.random.split(loss_key, config.num_minibatches)
+
+
+def epochs_carrying_batch(trainer: Any, hparams: Any, params: Any, opt_state: Any, batch: Any, key: jax.Array) -> Any:
+    config, step = trainer.config, minibatch_step(trainer, hparams)
+
     def epoch(carry, key):
         batch, params, opt_state = carry
-        permute_key, loss_key = jax.random.split(key)
-        permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
-        minibatches = jax.tree.map(lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
-        loss_keys = jax.random.split(loss_key, config.num_minibatches)
-        (params, opt_state), metrics = jax.lax.scan(minibatch, (params, opt_state), (minibatches, loss_keys))
+        (params, opt_state), metrics = jax.lax.scan(step, (params, opt_state), shuffled_minibatches(config, batch, key))
         return (batch, params, opt_state), metrics
 
     (_, params, opt_state), metrics = jax.lax.scan(epoch, (batch, params, opt_state), jax.random.split(key, config.update_epochs))
@@ -67,18 +77,10 @@ def epochs_unrolled(unroll: int | bool) -> Callable[..., Any]:
     """The minibatch epochs with the epoch's scan over minibatches unrolled `unroll` times (True: all)."""
 
     def minibatch_epochs(trainer: Any, hparams: Any, params: Any, opt_state: Any, batch: Any, key: jax.Array) -> Any:
-        config = trainer.config
-
-        def minibatch(carry, inputs):
-            params, opt_state, metrics = ppo.gradient_step(trainer, hparams, *carry, *inputs)
-            return (params, opt_state), metrics
+        config, step = trainer.config, minibatch_step(trainer, hparams)
 
         def epoch(carry, key):
-            permute_key, loss_key = jax.random.split(key)
-            permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
-            minibatches = jax.tree.map(lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
-            loss_keys = jax.random.split(loss_key, config.num_minibatches)
-            return jax.lax.scan(minibatch, carry, (minibatches, loss_keys), unroll=unroll)
+            return jax.lax.scan(step, carry, shuffled_minibatches(config, batch, key), unroll=unroll)
 
         (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), jax.random.split(key, config.update_epochs))
         return params, opt_state, metrics
