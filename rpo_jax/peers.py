@@ -18,7 +18,9 @@ from typing import Any
 
 import jax
 
-BEAT, FINISHED = "rpo_jax/beat/", "rpo_jax/finished/"
+BEAT, FINISHED, LEFT = "rpo_jax/beat/", "rpo_jax/finished/", "rpo_jax/left/"
+# How long process 0, which holds the coordinator, waits for the others' exits when all stop.
+LEAVE_WAIT_MS, LEAVE_GRACE_S = 30_000, 0.2
 # Set once the processes have agreed to stop (a run refused by one of them): a peer that exits
 # first is then expected, and the line already printed is the one that says why.
 _stopped = threading.Event()
@@ -42,8 +44,9 @@ def watch(coordinator: str, timeout: int) -> None:
 
 def stop_watching() -> None:
     """Ends this process's watch: every process is about to stop with exit code 2, for a reason
-    its error says. At exit it leaves at once: JAX's own shutdown of the distributed client would
-    wait for, or abort on, a coordinator that has already gone."""
+    its error says. At exit it leaves at once, process 0 last: JAX's own shutdown of the
+    distributed client would wait for, or abort on, a coordinator that has already gone, and a
+    process whose coordinator (process 0's) goes before it aborts in C++."""
     _stopped.set()
     atexit.register(_leave)  # registered after JAX's shutdown, so it runs before it
 
@@ -51,6 +54,18 @@ def stop_watching() -> None:
 def _leave() -> None:
     sys.stdout.flush()
     sys.stderr.flush()
+    from jax._src import distributed
+
+    client, me = distributed.global_state.client, jax.process_index()
+    try:
+        if me == 0:  # the others have stopped together with it: it waits moments at most
+            for peer in range(1, jax.process_count()):
+                client.blocking_key_value_get(f"{LEFT}{peer}", LEAVE_WAIT_MS)
+            time.sleep(LEAVE_GRACE_S)  # from a peer's word to its exit: a flush at most
+        else:
+            client.key_value_set(f"{LEFT}{me}", "1")
+    except Exception:  # noqa: BLE001 - a peer or the coordinator gone already: nothing to wait for
+        pass
     os._exit(2)
 
 
