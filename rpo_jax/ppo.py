@@ -276,9 +276,18 @@ def make_batch(
     """Values, GAE and the batch [B = T * N] of one rollout; with `normalize_value`, the
     critic's targets on the scale of return statistics updated with this rollout's returns."""
     config, critic = trainer.config, trainer.critic
-    # Values in two large batched calls after the rollout rather than one per step.
+    # Values in large batched calls after the rollout rather than one per step. A step's next
+    # observation is the following step's observation unless its episode ended there; only a
+    # bootstrapped truncation reads the value of that final observation, so the pass over all
+    # final observations runs only in a rollout where some episode was truncated.
     values = critic.apply(params["critic"], traj.obs)
-    next_values = critic.apply(params["critic"], traj.final_obs)
+    last_values = critic.apply(params["critic"], traj.final_obs[-1])
+    next_values = jnp.concatenate([values[1:], last_values[None]])
+    if config.truncation == "bootstrap":
+        final_values = jax.lax.cond(
+            traj.truncated.any(), lambda: critic.apply(params["critic"], traj.final_obs), lambda: next_values
+        )
+        next_values = jnp.where(traj.truncated, final_values, next_values)
     if config.normalize_value:
         values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
     advantages, returns = compute_gae(

@@ -16,6 +16,7 @@ from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import make_env
 from rpo_jax.networks import perturb_location, policy_distribution
 from rpo_jax.loss import Batch, compute_gae, ppo_loss
+from rpo_jax import ppo
 from rpo_jax.ppo import make_networks, make_trainer
 
 # --------------------------------------------------------------------------------------------
@@ -151,6 +152,39 @@ def test_episode_end_cuts_advantage_recursion_but_continuing_step_chains():
     # Terminated at step 0: no bootstrap and no recursion.
     adv, _ = _gae([1.0, 2.0], [0.5, 1.0], [8.0, 4.0], [True, False], [False, True])
     np.testing.assert_array_equal(adv, [0.5, 3.0])
+
+
+@pytest.mark.parametrize(("truncation", "with_truncations"), [("bootstrap", True), ("bootstrap", False), ("terminate", True)])
+def test_make_batch_reads_each_final_observation_that_gae_reads(truncation, with_truncations):
+    # make_batch takes a step's next value from the following step's observation and runs the
+    # critic over the final observations only when a truncation bootstraps from them. Where an
+    # episode ended, the final observation differs from the next one (an auto-reset sits
+    # between), so reading the wrong one changes the advantages.
+    T, N = 6, 5
+    config = Config(num_envs=N, num_steps=T, num_minibatches=1, truncation=truncation)
+    trainer = make_trainer(config, make_env("cartpole"))
+    state = trainer.init(jax.random.PRNGKey(0))
+    rng = np.random.default_rng(1)
+    obs = rng.normal(size=(T + 1, N, 4)).astype(np.float32)
+    terminated = rng.random((T, N)) < 0.2
+    truncated = (rng.random((T, N)) < 0.3) & ~terminated & with_truncations
+    assert truncated.any() == with_truncations and terminated.any()
+    ended = terminated | truncated
+    final_obs = np.where(ended[..., None], rng.normal(size=(T, N, 4)).astype(np.float32), obs[1:])
+    zeros = jnp.zeros((T, N))
+    traj = ppo.Transition(
+        jnp.asarray(obs[:-1]), jnp.asarray(final_obs), jnp.zeros((T, N, 1)), zeros,
+        jnp.asarray(rng.normal(size=(T, N)), jnp.float32), jnp.asarray(terminated), jnp.asarray(truncated),
+        zeros, zeros,
+    )  # fmt: skip
+    batch, _ = jax.jit(lambda t: ppo.make_batch(trainer, state.params, t, state.value_stats))(traj)
+    critic = lambda x: trainer.critic.apply(state.params["critic"], jnp.asarray(x))  # noqa: E731
+    advantages, returns = compute_gae(
+        traj.reward, critic(obs[:-1]), critic(final_obs), traj.terminated, traj.truncated,
+        config.gamma, config.gae_lambda, truncation,
+    )  # fmt: skip
+    np.testing.assert_allclose(batch.advantages, advantages.reshape(-1), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(batch.returns, returns.reshape(-1), rtol=1e-6, atol=1e-6)
 
 
 # --------------------------------------------------------------------------------------------
