@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from typing import Any, Callable
 
 import jax
 
 import purejaxrl_loop  # this folder's, on the path when run as a script
 from compare import ENV, playground_env, rpo_config
+from phases import interleaved
 from rpo_jax import envs, ppo
 
 
@@ -45,13 +45,7 @@ def main() -> int:
     parser.add_argument("--timesteps", type=int, default=1048576, help="environment steps of each run")
     parser.add_argument("--rounds", type=int, default=4, help="interleaved rounds, the first one each program's first call")
     args = parser.parse_args()
-    runs = programs(args.num_envs, args.timesteps)
-    names, seconds = list(runs), {name: [] for name in runs}
-    for index in range(args.rounds):
-        for name in names[index % len(names) :] + names[: index % len(names)]:
-            start = time.perf_counter()
-            jax.block_until_ready(runs[name]())
-            seconds[name].append(time.perf_counter() - start)
+    seconds = interleaved(programs(args.num_envs, args.timesteps), args.rounds, warm_up=False)
     print(f"{args.num_envs} environments, {args.timesteps} steps a run\n")
     print("| run | first call s | median of the later calls s | later calls |")
     print("|---|---|---|---|")

@@ -57,10 +57,11 @@ def rpo_jax_phases(num_envs: int) -> dict[str, Callable[[], Any]]:
     }
 
 
-def interleaved(programs: dict[str, Callable[[], Any]], rounds: int) -> dict[str, list[float]]:
-    """Seconds of each program's call in each of `rounds` rounds, every program once a round."""
-    for run in programs.values():
-        jax.block_until_ready(run())  # compile and warm up
+def interleaved(programs: dict[str, Callable[[], Any]], rounds: int, warm_up: bool = True) -> dict[str, list[float]]:
+    """Seconds of each program's call in each of `rounds` rounds, every program once a round;
+    with `warm_up`, each called once before (compiled, and its memory touched)."""
+    for run in programs.values() if warm_up else ():
+        jax.block_until_ready(run())
     names, times = list(programs), {name: [] for name in programs}
     for index in range(rounds):
         for name in names[index % len(names) :] + names[: index % len(names)]:
