@@ -10,7 +10,8 @@ finiteness diagnostics`: the update as the command line runs it, counting non-fi
 `perturbation drawn`: PPO as it was, drawing RPO's noise of half-width 0 in every gradient step
 (RPO with alpha 0: the same numbers); tried: `minibatches unrolled by 2` and `all minibatches
 unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' first layers one
-matmul, their second layers one batched matmul). Each variant is its own compiled whole update,
+matmul, their second layers one batched matmul); measured: `no approx_kl, no clip fraction` and
+`no loss metrics` (the logged metrics of every gradient step left out). Each variant is its own compiled whole update,
 called on the state after one update.
 """
 
@@ -112,6 +113,18 @@ def loss_with_fused_forward(params: dict, actor: Any, critic: Any, batch: Any, k
     return loss.ppo_loss(params, fused_actor, fused_critic, batch, key, config, *args)
 
 
+def loss_reporting(kept: tuple[str, ...]) -> Callable[..., Any]:
+    """`loss.ppo_loss` whose metrics outside `kept` are zeros: XLA then drops their arithmetic
+    and their writes into the epochs' outputs, which tells what the logged metrics cost."""
+
+    def ppo_loss(*args: Any) -> Any:
+        value, metrics = loss.ppo_loss(*args)
+        zeroed = {name: jnp.zeros(()) for name in loss.LossMetrics.__dataclass_fields__ if name not in kept}
+        return value, metrics.replace(**zeroed)
+
+    return ppo_loss
+
+
 def whole_update(
     num_envs: int, patch: Callable[[], Callable[[], None]] | None, diagnosed: bool = False, **config_changes: Any
 ) -> Callable[[], Any]:
@@ -147,6 +160,8 @@ VARIANTS = {
     "minibatches unrolled by 2": patched(ppo, "minibatch_epochs", epochs_unrolled(2)),
     "all minibatches unrolled": patched(ppo, "minibatch_epochs", epochs_unrolled(True)),
     "actor and critic fused": patched(ppo, "ppo_loss", loss_with_fused_forward),
+    "no approx_kl, no clip fraction": patched(ppo, "ppo_loss", loss_reporting(("policy_loss", "value_loss", "policy_entropy"))),
+    "no loss metrics": patched(ppo, "ppo_loss", loss_reporting(())),
 }
 
 
