@@ -19,10 +19,11 @@ from rpo_jax.envs import registry  # noqa: E402
 # train the same small programs, so on a fresh machine (an empty cache) each is compiled once per
 # run instead of once per test. Every program is kept, not only those over a second: the tests'
 # programs are small and each command's process would compile them all again.
-os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-os.environ["JAX_COMPILATION_CACHE_DIR"] = str(runner.compile_cache_dir())
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-runner.use_compile_cache(runner.compile_cache_dir())
+COMPILE_CACHE = runner.compile_cache_dir()
+os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # for the processes the tests start
+os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILE_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # this process read its flags already
+runner.use_compile_cache(COMPILE_CACHE)
 
 
 @pytest.fixture

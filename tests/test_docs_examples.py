@@ -145,7 +145,7 @@ def trained() -> dict[tuple[str, ...], Path]:
 def test_the_examples_of_a_page_run(page, tmp_path, trained):
     for example in examples(page):
         lines = example.code.splitlines(keepends=True) if example.language == "bash" else []
-        trainings = {line: training(line) for line in lines if training(line)}
+        trainings = {line: found for line in lines if (found := training(line))}
         repeated = [line for line, (words, _) in trainings.items() if words in trained]
         for line in repeated:  # run by an earlier page: a copy of its run directory, not a second run
             shutil.copytree(trained[trainings[line][0]], tmp_path / trainings[line][1])
