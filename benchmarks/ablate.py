@@ -11,7 +11,8 @@ finiteness diagnostics`: the update as the command line runs it, counting non-fi
 (RPO with alpha 0: the same numbers); tried: `minibatches unrolled by 2` and `all minibatches
 unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' first layers one
 matmul, their second layers one batched matmul); measured: `no approx_kl, no clip fraction` and
-`no loss metrics` (the logged metrics of every gradient step left out). Each variant is its own compiled whole update,
+`no loss metrics` (the logged metrics of every gradient step left out); tried: `gradient over
+chunks of N samples` (each minibatch's gradient summed over cache-sized chunks). Each variant is its own compiled whole update,
 called on the state after one update.
 """
 
@@ -26,6 +27,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import optax
 
 from compare import ENV, NUM_STEPS, rpo_config
 from phases import interleaved
@@ -113,6 +115,33 @@ def loss_with_fused_forward(params: dict, actor: Any, critic: Any, batch: Any, k
     return loss.ppo_loss(params, fused_actor, fused_critic, batch, key, config, *args)
 
 
+def gradient_over_chunks(samples: int) -> Callable[..., Any]:
+    """`ppo.gradient_step` with the minibatch's gradient and loss metrics taken as the means over
+    chunks of `samples` (a scan), its advantages normalised over the whole minibatch first: the
+    same step up to summation order and RPO's draws, with each chunk's activations small enough
+    for the core's cache. A minibatch of at most `samples` is one chunk."""
+
+    def gradient_step(trainer: Any, hparams: Any, params: dict, opt_state: Any, batch: Any, key: jax.Array) -> Any:
+        config, size = trainer.config, min(samples, batch.obs.shape[0])
+        chunks = batch.obs.shape[0] // size
+        if config.norm_adv:
+            batch = batch.replace(advantages=loss.normalize_advantages(batch.advantages))
+        unnormalised = dataclasses.replace(config, norm_adv=False)
+
+        def chunk(total, inputs):
+            grads = jax.grad(loss.ppo_loss, has_aux=True)(params, trainer.actor, trainer.critic, *inputs, unnormalised, hparams)
+            return jax.tree.map(jnp.add, total, grads), None
+
+        split = jax.tree.map(lambda x: x.reshape(chunks, size, *x.shape[1:]), batch)
+        zeros = jax.tree.map(jnp.zeros_like, (params, loss.LossMetrics(*[jnp.zeros(())] * 5)))
+        total, _ = jax.lax.scan(chunk, zeros, (split, jax.random.split(key, chunks)))
+        grads, metrics = jax.tree.map(lambda x: x / chunks, total)
+        updates, opt_state = trainer.optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, metrics
+
+    return gradient_step
+
+
 def loss_reporting(kept: tuple[str, ...]) -> Callable[..., Any]:
     """`loss.ppo_loss` whose metrics outside `kept` are zeros: XLA then drops their arithmetic
     and their writes into the epochs' outputs, which tells what the logged metrics cost."""
@@ -162,6 +191,8 @@ VARIANTS = {
     "actor and critic fused": patched(ppo, "ppo_loss", loss_with_fused_forward),
     "no approx_kl, no clip fraction": patched(ppo, "ppo_loss", loss_reporting(("policy_loss", "value_loss", "policy_entropy"))),
     "no loss metrics": patched(ppo, "ppo_loss", loss_reporting(())),
+    "gradient over chunks of 1024 samples": patched(ppo, "gradient_step", gradient_over_chunks(1024)),
+    "gradient over chunks of 2048 samples": patched(ppo, "gradient_step", gradient_over_chunks(2048)),
 }
 
 
@@ -169,12 +200,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1024])
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), help="only these beside current; default: all")
     args = parser.parse_args()
+    chosen = {name: VARIANTS[name] for name in ("current", *args.variants)} if args.variants else VARIANTS
     print("| num_envs | variant | whole update s: median (min-max) | vs current |\n|---|---|---|---|")
     for num_envs in args.num_envs:
-        programs = {name: whole_update(num_envs, patch) for name, patch in VARIANTS.items()}
-        programs["with the finiteness diagnostics"] = whole_update(num_envs, None, diagnosed=True)
-        programs["perturbation drawn"] = whole_update(num_envs, None, algo="rpo", rpo_alpha=0.0)
+        programs = {name: whole_update(num_envs, patch) for name, patch in chosen.items()}
+        if not args.variants:
+            programs["with the finiteness diagnostics"] = whole_update(num_envs, None, diagnosed=True)
+            programs["perturbation drawn"] = whole_update(num_envs, None, algo="rpo", rpo_alpha=0.0)
         times = interleaved(programs, args.rounds)
         current = statistics.median(times["current"])
         for name, seconds in times.items():

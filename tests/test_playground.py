@@ -1,5 +1,8 @@
 """DeepMind Control on MJX (`mjx-dmc/...`) through MuJoCo Playground."""
 
+import subprocess
+import sys
+
 import jax
 import numpy as np
 import pytest
@@ -51,3 +54,14 @@ def test_pendulum_swingup_trains_and_truncates_at_1000_steps():
     assert float(metrics.episode_length[-1]) == 1000
     # DMC rewards are in [0, 1] per step.
     assert 0.0 <= float(metrics.episode_return[-1]) <= 1000.0
+
+
+def test_mjx_leaves_warp_unimported_on_the_cpu_and_importable_after():
+    pytest.importorskip("warp")
+    script = (
+        "import sys; import jax; from rpo_jax.envs import mjx_support; import mujoco_playground; "
+        "print(jax.default_backend(), 'warp' in sys.modules, mjx_support.mjx.__name__); "
+        "import warp; print('warp' in sys.modules)"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert result.stdout.split() == ["cpu", "False", "mujoco.mjx", "True"]

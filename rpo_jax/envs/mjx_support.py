@@ -10,15 +10,33 @@ which MuJoCo fixes when it is first imported.
 import contextlib
 import functools
 import io
+import sys
 from collections.abc import Iterator
 from typing import Any
 
 import jax
 import mujoco
 
-# mujoco.mjx prints (not logs) a line when its optional warp backend is missing; keep stdout clean.
-with contextlib.redirect_stdout(io.StringIO()):
-    from mujoco import mjx
+
+def _import_mjx() -> Any:
+    """mujoco.mjx, without its warp backend where JAX has no GPU.
+
+    MJX runs warp only on CUDA GPUs, and importing it (installed with Playground) builds its
+    kernels: about 3 s of every command's start on a CPU, for nothing. mjx prints (not logs) a
+    line when warp is missing; stdout is kept clean."""
+    skip_warp = jax.default_backend() != "gpu" and "warp" not in sys.modules
+    with contextlib.redirect_stdout(io.StringIO()):
+        if skip_warp:
+            sys.modules["warp"] = None  # type: ignore[assignment]  # makes `import warp` fail
+        try:
+            from mujoco import mjx
+        finally:
+            if skip_warp:
+                del sys.modules["warp"]
+    return mjx
+
+
+mjx = _import_mjx()
 
 
 def put_model(mj_model: mujoco.MjModel) -> tuple[Any, Any]:
