@@ -12,7 +12,7 @@ finiteness diagnostics`: the update as the command line runs it, counting non-fi
 unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' first layers one
 matmul, their second layers one batched matmul); measured: `no approx_kl, no clip fraction` and
 `no loss metrics` (the logged metrics of every gradient step left out); tried: `gradient over
-chunks of N samples` (each minibatch's gradient summed over cache-sized chunks). Each variant is its own compiled whole update,
+chunks of N samples` (each minibatch's gradient averaged over cache-sized chunks). Each variant is its own compiled whole update,
 called on the state after one update.
 """
 

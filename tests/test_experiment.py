@@ -18,7 +18,7 @@ import pytest
 from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
 from rpo_jax import plan as plan_module
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import CHECKPOINT_DIR, LOCK_FILE, PARAMS_FILE
+from rpo_jax.rundir import CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
 TINY = [
@@ -320,3 +320,18 @@ def test_an_experiment_parses_each_sweep_once_and_validates_each_config_once(tmp
         assert len(plan.grid) == len(grids["cartpole", job.name])
         plan.placement.make_trainer(plan.config, envs.make_env("cartpole"))
     assert calls == checked  # planned and built without checking again
+
+
+def test_an_experiment_under_benchmarks_raw_is_kept_by_git_but_its_events_and_locks():
+    # A long experiment's runs outlast the machine only as commits (benchmarks/RESULTS.md, issue 27).
+    root = Path(__file__).resolve().parent.parent
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    run = "benchmarks/raw/any/runs/cartpole/rpo"
+    kept = ["benchmarks/raw/any/experiment.json", "benchmarks/raw/any/results.csv",
+            *(f"{run}/{name}" for name in (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE)),
+            f"{run}/{CHECKPOINT_DIR}/252/state/manifest.ocdbt"]  # fmt: skip
+    left = [f"{run}/{TENSORBOARD_DIR}/seed_1/events", f"{run}/{LOCK_FILE}", f"benchmarks/raw/any/{LOCK_FILE}",
+            f"runs/any/{METRICS_FILE}"]  # fmt: skip
+    ignored = subprocess.run(["git", "check-ignore", "--no-index", *kept, *left], cwd=root, capture_output=True, text=True)
+    assert ignored.stdout.split() == left
