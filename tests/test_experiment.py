@@ -331,7 +331,9 @@ def test_an_experiment_under_benchmarks_raw_is_kept_by_git_but_its_events_and_lo
     kept = ["benchmarks/raw/any/experiment.json", "benchmarks/raw/any/results.csv",
             *(f"{run}/{name}" for name in (CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE)),
             f"{run}/{CHECKPOINT_DIR}/252/state/manifest.ocdbt"]  # fmt: skip
+    # Its own report is a copy: the committed one lies under benchmarks/reports/.
     left = [f"{run}/{TENSORBOARD_DIR}/seed_1/events", f"{run}/{LOCK_FILE}", f"benchmarks/raw/any/{LOCK_FILE}",
+            "benchmarks/raw/any/report.md", f"benchmarks/raw/any/{report.FIGURES_DIR}/a.png",
             f"runs/any/{METRICS_FILE}"]  # fmt: skip
     ignored = subprocess.run(["git", "check-ignore", "--no-index", *kept, *left], cwd=root, capture_output=True, text=True)
     assert ignored.stdout.split() == left
