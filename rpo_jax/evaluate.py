@@ -34,7 +34,7 @@ import tyro
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import RunDir, check_new_file
 from rpo_jax.scores import sample_std, with_spread
-from rpo_jax.spec import EvalEpisodes, TrainedRun, parse, refuse_old_flags
+from rpo_jax.spec import CompileCache, EvalEpisodes, TrainedRun, parse, refuse_old_flags
 
 PROG = "python -m rpo_jax.evaluate"
 
@@ -85,6 +85,7 @@ class EvaluateArgs:
     """seed of other episodes; default: the run's own seed, which gives the episodes of its final evaluation in training"""
     video: Annotated[Path | None, tyro.conf.arg(metavar="OUT.mp4")] = None
     """also render one episode to this file"""
+    cache: tyro.conf.OmitArgPrefixes[CompileCache] = CompileCache()
 
 
 # evaluate's flags before acting deterministically became the default.
@@ -115,10 +116,12 @@ def run_command(args: EvaluateArgs) -> None:
         check_video_path(args.video)
     import jax
 
-    from rpo_jax import evaluation, video
+    from rpo_jax import evaluation, runner, video
     from rpo_jax.plan import PLAN_DEFAULTS
     from rpo_jax.policy import load_runs
 
+    # The evaluation program is the largest a command compiles after training's (seconds on a CPU).
+    runner.use_compile_cache(runner.compile_cache_dir() if args.cache.compile_cache else None)
     runs = load_runs(args.trained.run_dir)  # before the environment: refuses an edited config.json
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:

@@ -80,7 +80,15 @@ class Pbt:
 
 
 @dataclasses.dataclass(frozen=True)
-class Processes:
+class CompileCache:
+    """Whether a command keeps its compiled programs for the next one (training and evaluation)."""
+
+    compile_cache: bool = True
+    """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
+
+
+@dataclasses.dataclass(frozen=True)
+class Processes(CompileCache):
     """Where the runs train: the devices of each process, the processes and the compile cache."""
 
     devices: int | None = None
@@ -102,8 +110,6 @@ class Processes:
     with an error; raise it on clusters whose processes start far apart"""
     distributed: bool = False
     """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
-    compile_cache: bool = True
-    """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
     allow_relayout: bool = False
     """when a run resumes: continue on another number of devices or processes than it was trained on; not bit-exact
     (each layout compiles programs of its own shapes, which round differently), so refused without this flag"""

@@ -13,7 +13,7 @@ from point_mass import PointMass
 from test_host import SPEC as HOST_SPEC
 from test_host import host_point_mass
 
-from rpo_jax import envs, export, load_policy, plan, runner, train
+from rpo_jax import envs, evaluate, export, load_policy, plan, runner, train
 from rpo_jax.experiment import Job, progress_line
 from rpo_jax.tracking import wandb_records
 
@@ -147,6 +147,16 @@ def test_one_seed_prints_no_spread(point_mass_env, tmp_path, capsys):
     assert train.main(["--env", "point_mass", *TINY, "--total-timesteps", "256", "--out", str(tmp_path / "one")]) == 0
     line = capsys.readouterr().out.splitlines()[0]
     assert "over 1 seed(s)" in line and "±" not in line
+
+
+def test_evaluate_keeps_its_program_in_the_compile_cache_unless_told_not_to(point_mass_env, tmp_path, monkeypatch):
+    run_dir = tmp_path / "run"
+    assert train.main(["--env", "point_mass", *TINY, "--total-timesteps", "256", "--out", str(run_dir)]) == 0
+    chosen = []
+    monkeypatch.setattr(runner, "use_compile_cache", chosen.append)
+    assert evaluate.main([str(run_dir)]) == 0
+    assert evaluate.main([str(run_dir), "--no-compile-cache"]) == 0
+    assert chosen == [runner.compile_cache_dir(), None]
 
 
 def test_exports_act_as_load_policy(tmp_path):
