@@ -67,10 +67,11 @@ def load_run(run_dir: str | Path, run: int | None = None) -> tuple[Config, dict[
     """One run's config, environment spec (as config.json records it), actor parameters and
     observation statistics; `run` as `load_policy`'s."""
     directory = RunDir(Path(run_dir))
-    run, runs = directory.default_run() if run is None else run, len(directory.read_config()["runs"])
+    saved_run = directory.read_config()
+    run, runs = directory.default_run() if run is None else run, len(saved_run["runs"])
     if not 0 <= run < runs:
         raise ValueError(f"run must be in [0, {runs}), got {run}")
-    config, spec, actor_params, stats = load_runs(run_dir)
+    config, spec, actor_params, stats = _saved_runs(directory, saved_run)
     actor_params, stats = jax.tree.map(lambda x: jnp.asarray(x[run]), (actor_params, stats))
     if not all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves((actor_params, stats))):
         raise UsageError(f"{directory.path / PARAMS_FILE}: run {run}'s parameters are not finite (NaN or inf)")
@@ -81,7 +82,11 @@ def load_runs(run_dir: str | Path) -> tuple[Config, dict[str, Any], Any, envs.Ru
     """`load_run`'s parts of every run of the directory: the actor parameters and observation
     statistics with leaves [runs, ...] (numpy, as saved)."""
     directory = RunDir(Path(run_dir))
-    saved_run = directory.read_config()
+    return _saved_runs(directory, directory.read_config())
+
+
+def _saved_runs(directory: RunDir, saved_run: dict[str, Any]) -> tuple[Config, dict[str, Any], Any, envs.RunningMeanStd]:
+    """`load_runs` of `directory`, whose config.json record `saved_run` is."""
     check_acts_as_trained(directory, saved_run)
     runs = len(saved_run["runs"])
     try:
