@@ -12,7 +12,9 @@ with every update:
 
 A change of what is computed records new references and says why here: auto-reset from a pool of
 starts drawn once per rollout (`envs.VectorEnv`); the trainer's environments starting at the first
-rollout's draw (`VectorEnv(defer_start=True)`). Recording: `python tests/test_reference_run.py`
+rollout's draw (`VectorEnv(defer_start=True)`). A change of how it is compiled or of the
+simulator records new digests only: XLA's older fusion emitters in the suite's flags (jaxlib 0.10),
+mujoco 4.0.1. Recording: `python tests/test_reference_run.py`
 writes tests/data/reference_two_updates.npz and prints this machine's fingerprint and digests
 under the suite's XLA flags.
 """
@@ -46,22 +48,24 @@ SHORT = [*COMMAND, "--total-timesteps", "2048"]  # 2 updates
 # XLA's default flags), relative to each array's largest magnitude (parameters and observation
 # statistics). Measured: 4.5e-6 with Python 3.13 / jax 0.12.0.1; 3.2e-7 with XLA's AVX2 code
 # (XLA_FLAGS=--xla_cpu_max_isa=AVX2); 7.5e-6 (3.11) and 5.4e-6 (3.13) with the suite's flags
-# (conftest.py: --xla_backend_optimization_level=0). Alpha 0.49 for 0.5 moves them by 0.30.
+# (conftest.py: --xla_backend_optimization_level=0); 5.9e-6 (3.11) with XLA's older fusion emitters
+# added. Alpha 0.49 for 0.5 moves them by 0.30.
 TOLERANCE = 1e-4
 
 # fingerprint -> (params SHA-256, metrics SHA-256) of the eight-update run. Metrics are the rows
 # without their wall-clock field (sps), as sorted-key JSON.
 RECORDED = {
-    # AMD EPYC with AVX-512 (2 cores, KVM), Python 3.11.7, jax/jaxlib 0.10.2, numpy 2.4.6, mujoco 4.0.0,
-    # with the suite's XLA_FLAGS (tests/conftest.py)
-    "b00064b073e91ede": (
-        "7709341b92d881de165873e55f28e9322e5b8727a27f15bc9bb39d51424e6886",
-        "4435cacc5cadd31b7f8ab7883ffbfa552792060d38dcef5eeb8aecc95d28c812",
+    # AMD EPYC with AVX-512 (2 cores, KVM), Python 3.11.7, jax/jaxlib 0.10.2, numpy 2.4.6, mujoco 4.0.1,
+    # with the suite's XLA_FLAGS (tests/conftest.py), XLA's older fusion emitters among them
+    "63ef25e2f2fbaef2": (
+        "ba2513a4b0fb6c0fead08e031725bd7c932e21252aa35b4a0b4a7a672aa42c05",
+        "e8f5128920b52bcf4c74febc7167af9b519e607bb807204fd1f5a621326eacaf",
     ),
-    # the same machine and flags, Python 3.13.0, jax/jaxlib 0.12.0.1, numpy 2.5.5
-    "bcafdfc3654ecfb2": (
-        "6f874740c0c3f9cb4690ab2ba2a82f0f0a65d4b39492222b085ed99ebc6de433",
-        "3789632d70756b4442cdba9bfa2c984c3829224a8318cdb328c4413e1587489f",
+    # the same machine and the suite's flags (no older emitters there), Python 3.13.0, jax/jaxlib 0.12.0.1,
+    # numpy 2.5.5, mujoco 4.0.1
+    "b5b8246593a45653": (
+        "1e80e786ab2ba314803b5493e57aa6b160ed5eed5ad4693302a630c962b1ee90",
+        "19cea350f042acee563789e11905fd117173e1615d8caeaf61ee163e15ad5a39",
     ),
 }
 
