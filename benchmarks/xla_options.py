@@ -6,7 +6,9 @@ compare.py's work at each size. The minibatch epochs and the whole update are ea
 per option set (`Lowered.compile(compiler_options=...)`, the persistent compile cache off so that
 no option set is served another's program): `default`; `xnnpack` (`xla_cpu_use_xnnpack`);
 `xnnpack greedy fusion` (with XNNPACK's graph fusion in its greedy mode); `onednn`
-(`xla_cpu_use_onednn`); `eigen one thread` (`xla_cpu_multi_thread_eigen` off). For each it prints
+(`xla_cpu_use_onednn`); `eigen one thread` (`xla_cpu_multi_thread_eigen` off); `older fusion
+emitters` (`xla_cpu_use_fusion_emitters` off, jaxlib 0.10). `--options` picks some (the default is
+always compiled, as the baseline). For each it prints
 whether the compiled program's text differs from the default's and the largest difference of
 the epochs' outputs, then every program's median time over interleaved rounds.
 """
@@ -32,11 +34,13 @@ OPTIONS: dict[str, dict[str, Any]] = {
     },
     "onednn": {"xla_cpu_use_onednn": True},
     "eigen one thread": {"xla_cpu_multi_thread_eigen": False},
+    # jaxlib 0.10 only: newer XLA has the MLIR emitters alone and rejects the option.
+    "older fusion emitters": {"xla_cpu_use_fusion_emitters": False},
 }
 PHASES = ("minibatch epochs", "whole update")
 
 
-def compiled_variants(num_envs: int) -> dict[str, Callable[[], Any]]:
+def compiled_variants(num_envs: int, names: list[str]) -> dict[str, Callable[[], Any]]:
     """'phase, option set' -> a call of that phase compiled with those options; prints how each differs."""
     programs = {}
     for phase, call in rpo_jax_phases(num_envs).items():
@@ -44,8 +48,8 @@ def compiled_variants(num_envs: int) -> dict[str, Callable[[], Any]]:
             continue
         lowered = call.func.lower(*call.args)
         default_text, default_out = None, None
-        for name, options in OPTIONS.items():
-            executable = lowered.compile(compiler_options=options)
+        for name in ["default", *names]:
+            executable = lowered.compile(compiler_options=OPTIONS[name])
             run = functools.partial(executable, *call.args)
             text, out = executable.as_text(), jax.tree.leaves(run())
             default_text, default_out = default_text or text, default_out or out
@@ -62,14 +66,16 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-envs", type=int, nargs="+", default=[256, 1024, 4096])
     parser.add_argument("--rounds", type=int, default=7)
+    choices = [name for name in OPTIONS if name != "default"]
+    parser.add_argument("--options", nargs="+", choices=choices, default=choices, help="option sets beside the default")
     args = parser.parse_args()
     jax.config.update("jax_enable_compilation_cache", False)
     for num_envs in args.num_envs:
-        times = interleaved(compiled_variants(num_envs), args.rounds)
+        times = interleaved(compiled_variants(num_envs, args.options), args.rounds)
         print("| num_envs | program | options | s: median (min-max) | vs default |\n|---|---|---|---|---|")
         for phase in PHASES:
             base = statistics.median(times[f"{phase}, default"])
-            for name in OPTIONS:
+            for name in ["default", *args.options]:
                 seconds = times[f"{phase}, {name}"]
                 median = statistics.median(seconds)
                 print(
