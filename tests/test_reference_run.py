@@ -55,7 +55,7 @@ TOLERANCE = 1e-4
 # fingerprint -> (params SHA-256, metrics SHA-256) of the eight-update run. Metrics are the rows
 # without their wall-clock field (sps), as sorted-key JSON.
 RECORDED = {
-    # AMD EPYC with AVX-512 (2 cores, KVM), Python 3.11.7, jax/jaxlib 0.10.2, numpy 2.4.6, mujoco 4.0.1,
+    # AMD EPYC with AVX2, no AVX-512 (2 cores, KVM), Python 3.11.7, jax/jaxlib 0.10.2, numpy 2.4.6, mujoco 4.0.1,
     # with the suite's XLA_FLAGS (tests/conftest.py), XLA's older fusion emitters among them
     "63ef25e2f2fbaef2": (
         "ba2513a4b0fb6c0fead08e031725bd7c932e21252aa35b4a0b4a7a672aa42c05",
