@@ -41,14 +41,15 @@ PHASES = ("minibatch epochs", "whole update")
 
 
 def compiled_variants(num_envs: int, names: list[str]) -> dict[str, Callable[[], Any]]:
-    """'phase, option set' -> a call of that phase compiled with those options; prints how each differs."""
+    """'phase, option set' -> a call of that phase compiled with each set of `names` (the default
+    first, the others compared with it); prints how each differs."""
     programs = {}
     for phase, call in rpo_jax_phases(num_envs).items():
         if phase not in PHASES:
             continue
         lowered = call.func.lower(*call.args)
         default_text, default_out = None, None
-        for name in ["default", *names]:
+        for name in names:
             executable = lowered.compile(compiler_options=OPTIONS[name])
             run = functools.partial(executable, *call.args)
             text, out = executable.as_text(), jax.tree.leaves(run())
@@ -69,13 +70,14 @@ def main() -> int:
     choices = [name for name in OPTIONS if name != "default"]
     parser.add_argument("--options", nargs="+", choices=choices, default=choices, help="option sets beside the default")
     args = parser.parse_args()
+    names = ["default", *args.options]
     jax.config.update("jax_enable_compilation_cache", False)
     for num_envs in args.num_envs:
-        times = interleaved(compiled_variants(num_envs, args.options), args.rounds)
+        times = interleaved(compiled_variants(num_envs, names), args.rounds)
         print("| num_envs | program | options | s: median (min-max) | vs default |\n|---|---|---|---|---|")
         for phase in PHASES:
             base = statistics.median(times[f"{phase}, default"])
-            for name in ["default", *args.options]:
+            for name in names:
                 seconds = times[f"{phase}, {name}"]
                 median = statistics.median(seconds)
                 print(

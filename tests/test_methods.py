@@ -14,6 +14,7 @@ import pytest
 from point_mass import PointMass
 from scipy import special, stats
 
+from conftest import OLDER_EMITTERS
 from rpo_jax import envs, loss, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution
@@ -79,8 +80,7 @@ def test_log_prob_entropy_and_kl_match_closed_forms(kind):
 # Bit-identical updates are a property of the programs users run, compiled with XLA's own CPU
 # code generation; where the suite compiles with XLA's older fusion emitters (conftest.py), which
 # fuse differently, these programs take the default ones back.
-OLDER_EMITTERS = "--xla_cpu_use_fusion_emitters=false" in os.environ.get("XLA_FLAGS", "")
-DEFAULT_CODEGEN = {"xla_cpu_use_fusion_emitters": True} if OLDER_EMITTERS else None
+DEFAULT_CODEGEN = {"xla_cpu_use_fusion_emitters": True} if OLDER_EMITTERS in os.environ["XLA_FLAGS"].split() else None
 
 
 @functools.lru_cache
