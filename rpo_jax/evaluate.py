@@ -34,7 +34,7 @@ import tyro
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.rundir import RunDir, check_new_file
 from rpo_jax.scores import sample_std, with_spread
-from rpo_jax.spec import CompileCache, EvalEpisodes, TrainedRun, parse, refuse_old_flags
+from rpo_jax.spec import CompileCache, EvalEpisodes, TrainedRun, check_seeds, parse, refuse_old_flags
 
 PROG = "python -m rpo_jax.evaluate"
 
@@ -98,8 +98,8 @@ def parse_args(argv: Sequence[str]) -> EvaluateArgs:
     args = parse(EvaluateArgs, argv, None, PROG)
     if args.eval_episodes is not None and args.eval_episodes < 1:
         raise UsageError(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
-    if args.seed is not None and not 0 <= args.seed < 2**32:
-        raise UsageError(f"--seed must be in [0, 2**32 - 1] (the PRNG key's range), got {args.seed}")
+    if args.seed is not None:
+        check_seeds(args.seed, 1)
     return args
 
 
@@ -121,7 +121,7 @@ def run_command(args: EvaluateArgs) -> None:
     from rpo_jax.policy import load_runs
 
     # The evaluation program is the largest a command compiles after training's (seconds on a CPU).
-    runner.use_compile_cache(runner.compile_cache_dir() if args.cache.compile_cache else None)
+    runner.use_compile_cache(args.cache.cache_directory)
     runs = load_runs(args.trained.run_dir)  # before the environment: refuses an edited config.json
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:

@@ -31,7 +31,7 @@ from rpo_jax.config import PRESETS, SWEEPABLE, Config
 from rpo_jax.envs import dmc_tasks
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_json
-from rpo_jax.rundir import LOCK_FILE, RunDir, hold_lock
+from rpo_jax.rundir import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
 from rpo_jax.spec import (
     JOINING_FIELDS, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse, refuse_old_flags,
 )  # fmt: skip
@@ -60,7 +60,7 @@ SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") f
 TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
 
 # The paper's budget: 8M environment steps per run, 10 seeds per variant.
-PAPER_TIMESTEPS, PAPER_SEEDS = 8_000_000, 10
+PAPER_TIMESTEPS, PAPER_SEEDS = PRESETS["paper"].total_timesteps, 10
 ENTROPY_COEFS = (0.0, 0.01, 0.05, 0.5, 1.0, 10.0)
 RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
 
@@ -123,7 +123,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     # training over alpha and lr; every member of the population trains as many steps as a seed.
     "pbt-alpha": Experiment(
         (PPO, Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)), Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)),
-         Job("pbt", "rpo", population=8, pbt_fields="rpo_alpha=0.001:1.0,lr=1e-5:1e-3")),
+         Job("pbt", "rpo", population=Pbt.population, pbt_fields=Pbt.pbt_fields)),
         "pbt-alpha",
     ),  # fmt: skip
     "truncation": Experiment(
@@ -171,10 +171,9 @@ NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
 OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
 # experiments recorded before they could be given continue.
-RECORDED_WHERE_GIVEN = {
-    "seed": 1, "log_every": None, "devices": None, "shard_envs": False,
-    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2,
-}  # fmt: skip
+RECORDED_WHERE_GIVEN = (
+    "seed", "log_every", "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes",
+)  # fmt: skip
 
 
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:
@@ -225,6 +224,7 @@ def resolve(args: ExperimentArgs) -> dict:
     jobs = selected_jobs(args)
     timesteps = args.config.total_timesteps if "total_timesteps" in args.given else EXPERIMENTS[args.name].default_timesteps
     values = {**vars(args.run), **vars(args.processes)}
+    defaults = {**vars(RunSpec()), **vars(Processes())}
     definition = {
         "experiment": args.name,
         "envs": env_names(args),
@@ -233,7 +233,7 @@ def resolve(args: ExperimentArgs) -> dict:
         "preset": args.preset,
         "checkpoint_every": args.run.checkpoint_every,
         **({"eval_every": args.run.eval_every, "eval_episodes": args.run.eval_episodes} if args.run.eval_every else {}),
-        **{name: values[name] for name, default in RECORDED_WHERE_GIVEN.items() if values[name] != default},
+        **{name: values[name] for name in RECORDED_WHERE_GIVEN if values[name] != defaults[name]},
         "config": config_overrides(args, jobs),
         # A job's population fields where it has one: experiments recorded before them continue.
         "jobs": [{k: v for k, v in dataclasses.asdict(job).items() if v or k not in POPULATION_FIELDS} for job in jobs],
@@ -253,11 +253,6 @@ def upgraded(saved: dict) -> dict:
     return {**saved, "config": {name: value for name, value in given.items() if value is not None}}
 
 
-def env_directory(env: str) -> str:
-    """The directory name of `env`'s runs: its name, with / and an import path's : as _."""
-    return env.replace("/", "_").replace(":", "_")
-
-
 def check_directory_names(env_names: Sequence[str]) -> None:
     """Refuses two environments whose runs would share a directory (cola:b_c and cola_b:c are
     both cola_b_c): the second would find the first's runs and report them as its own."""
@@ -266,18 +261,18 @@ def check_directory_names(env_names: Sequence[str]) -> None:
         other = seen.setdefault(env_directory(name), name)
         if other != name:
             raise UsageError(
-                f"--envs {other} and {name} would share the directory runs/{env_directory(name)}; run them apart"
+                f"--envs {other} and {name} would share the directory {EXPERIMENT_RUNS_DIR}/{env_directory(name)}; run them apart"
             )
 
 
 def run_dir(out: Path, env: str, job: Job) -> Path:
-    return out / "runs" / env_directory(env) / job.name
+    return out / EXPERIMENT_RUNS_DIR / env_directory(env) / job.name
 
 
 def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
     """A new directory, or the same experiment's directory to continue; nothing else. Writes
     experiment.json into a new one where `write`."""
-    record = out / "experiment.json"
+    record = out / EXPERIMENT_FILE
     if record.is_file():
         saved = upgraded(json.loads(record.read_text()))
         if saved != definition:

@@ -81,7 +81,7 @@ def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray
     arrays = {f"{kind}_{i}": np.asarray(layer[kind], np.float32) for i, layer in enumerate(layers) for kind in ("kernel", "bias")}
     obs_size = arrays["kernel_0"].shape[0]
     if config.normalize_obs:
-        mean, std, clip = np.asarray(stats.mean), np.sqrt(np.asarray(stats.var, np.float32) + np.float32(1e-8)), config.obs_clip
+        mean, std, clip = np.asarray(stats.mean), np.asarray(stats.std), config.obs_clip
     else:
         mean, std, clip = np.zeros(obs_size), np.ones(obs_size), np.inf
     return {

@@ -42,10 +42,6 @@ def colours_for(variants: Sequence[str]) -> dict[str, Any]:
     return {variant: palette(i % palette.N) for i, variant in enumerate(variants)}
 
 
-def slug(name: str) -> str:
-    return name.replace("/", "_")
-
-
 def plain_steps(value: float, _position: Any = None) -> str:
     """A tick label without an offset: 500k, 1M, 1.5M, 2B."""
     for size, suffix in ((1e9, "B"), (1e6, "M"), (1e3, "k")):

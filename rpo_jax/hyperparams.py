@@ -53,3 +53,9 @@ LOG_SCALE = ("rpo_alpha", "lr")
 def read_by(name: str) -> tuple[str, ...]:
     """The algorithms whose loss reads the hyperparameter `name`; () when every algorithm's does."""
     return next(field.metadata["read_by"] for field in dataclasses.fields(Hyperparams) if field.name == name)
+
+
+def explored_fields(text: str) -> list[tuple[str, str]]:
+    """--pbt-fields' "NAME=LOW:HIGH,..." as (NAME, "LOW:HIGH") pairs, in order and unchecked
+    (`rpo_jax.pbt.parse_fields` checks them)."""
+    return [(name, bounds) for name, _, bounds in (part.partition("=") for part in text.split(",") if part)]

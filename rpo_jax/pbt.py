@@ -29,12 +29,9 @@ import jax.numpy as jnp
 from rpo_jax import envs, ppo
 from rpo_jax.config import SWEEPABLE, check_applies
 from rpo_jax.errors import UsageError
-from rpo_jax.hyperparams import LOG_SCALE
+from rpo_jax.hyperparams import LOG_SCALE, explored_fields
+from rpo_jax.spec import PERTURB_FACTORS, Pbt
 
-EXPLORE_RULES = ("perturb", "resample")
-# Perturbation multiplies a value by one of these, each as likely (the paper's 0.8 and 1.2; 1.25
-# undoes 0.8, so that a value perturbed both ways comes back).
-PERTURB_FACTORS = (0.8, 1.25)
 # Streams of the population's keys, apart from training's and evaluation's.
 INIT_STREAM, STEP_STREAM = 0x9B70, 0x9B71
 
@@ -45,15 +42,15 @@ class Rule:
     `quantile` of members that copy (and of the members they copy from), and the explore rule."""
 
     fields: tuple[tuple[str, float, float], ...]
-    quantile: float = 0.25
-    explore: str = "perturb"
+    quantile: float = Pbt.pbt_quantile
+    explore: str = Pbt.pbt_explore
 
 
 def parse_fields(text: str, algo: str) -> tuple[tuple[str, float, float], ...]:
     """`--pbt-fields` "NAME=LOW:HIGH,NAME=LOW:HIGH" as (name, low, high); bad input raises UsageError."""
     fields: list[tuple[str, float, float]] = []
-    for part in filter(None, text.split(",")):
-        name, _, bounds = part.partition("=")
+    for name, bounds in explored_fields(text):
+        part = f"{name}={bounds}" if bounds else name
         if name not in SWEEPABLE:
             raise UsageError(f"--pbt-fields {part}: unknown field {name!r}; explorable: {', '.join(SWEEPABLE)}")
         check_applies(algo, [name], lambda name: f"--pbt-fields {name}")

@@ -22,10 +22,10 @@ import numpy as np
 
 from rpo_jax import figures
 from rpo_jax.errors import UsageError
-from rpo_jax.hyperparams import LOG_SCALE
-from rpo_jax.scores import tail_mean
+from rpo_jax.hyperparams import LOG_SCALE, explored_fields
+from rpo_jax.rundir import EXPERIMENT_FILE, env_directory
+from rpo_jax.scores import best_run, tail_mean
 
-EXPERIMENT_FILE = "experiment.json"
 # A row's columns that say where it lies rather than what it measured: the mean member keeps them.
 PLACE_COLUMNS = ("seed", "update", "env_steps")
 
@@ -72,7 +72,7 @@ def run_job(record: dict) -> PopulationJob | None:
 def population_job(recorded: dict) -> PopulationJob:
     """A population's size and explored fields, from the `population` and `pbt_fields`
     ("name=low:high,...") an experiment's job or a run's plan records."""
-    fields = tuple(part.partition("=")[0] for part in recorded["pbt_fields"].split(","))
+    fields = tuple(name for name, _ in explored_fields(recorded["pbt_fields"]))
     return PopulationJob(recorded["population"], fields)
 
 
@@ -85,13 +85,11 @@ def split_populations(runs: dict[float, list[dict]], size: int, name: str) -> li
 
 
 def best_index(members: Sequence[list[dict]]) -> int:
-    """The population's best member, as summary.json chooses it (`rpo_jax.population.best_member`):
-    the highest last evaluation return where every member was evaluated, else the highest final
-    return (`scores.tail_mean` of the episode return); ties to the first."""
+    """The population's best member from its logged rows (`scores.best_run`), as summary.json
+    chooses it from the summarised runs (`rpo_jax.population.best_member`)."""
     evaluations = [[row["eval_return"] for row in run if "eval_return" in row] for run in members]
-    if all(evaluations):
-        return int(np.argmax([run[-1] for run in evaluations]))
-    return int(np.argmax([tail_mean([row["episode_return"] for row in run]) for run in members]))
+    finals = [tail_mean([row["episode_return"] for row in run]) for run in members]
+    return best_run([run[-1] if run else None for run in evaluations], finals)
 
 
 def mean_rows(members: Sequence[list[dict]], variant: str, seed: float) -> list[dict]:
@@ -158,7 +156,7 @@ def write_figures(runs: Runs, jobs: dict[str, PopulationJob], out: Path) -> list
             continue
         populations = split_populations(seeds, job.size, f"{env} {variant}")
         labels = population_labels(populations)
-        name = f"{figures.slug(env)}-{re.sub(r'[^A-Za-z0-9._-]+', '_', variant)}"
+        name = f"{env_directory(env)}-{re.sub(r'[^A-Za-z0-9._-]+', '_', variant)}"
         title = f"{env} {variant}: {len(populations)} population(s) of {job.size}"
         written.append(figures.schedules(out / f"{name}-schedules.png", title, populations, labels, job.fields, LOG_SCALE))
         best = [best_index(members) for members in populations]

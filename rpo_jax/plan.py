@@ -26,7 +26,7 @@ from rpo_jax.devices import Placement, is_primary, make_placement
 from rpo_jax.envs import registry
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import RunDir
-from rpo_jax.spec import Pbt, Processes, RunSpec
+from rpo_jax.spec import EXPLORE_RULES, Pbt, Processes, RunSpec, check_seeds
 
 # Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
 # steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
@@ -36,19 +36,12 @@ CHECKPOINTS_PER_RUN = 10
 CHECKPOINT_MIN_RUN_STEPS = 5_000_000
 # Videos during training by default (--capture-video without --capture-video-every), the last at the end.
 VIDEOS_PER_RUN = 4
-# jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
-SEED_LIMIT = 2**32
 # The plan's fields that config.json records and a resumed run reads back; runs recorded before
 # evaluation during training existed lack the eval fields and read back with evaluation off.
 PLAN_FIELDS = (
     "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
     "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
 )  # fmt: skip
-# What a resumed run of a config.json written before a field existed reads for it.
-PLAN_DEFAULTS = {
-    "eval_every": 0, "eval_episodes": 10, "devices": None, "shard_envs": False,
-    "capture_video": False, "capture_video_every": None, "capture_video_episodes": 2, "pbt": None,
-}  # fmt: skip
 # The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
 PLAN_TYPES: dict[str, tuple[type, ...]] = {
     "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
@@ -75,13 +68,13 @@ class RunPlan:
     config: Config
     log_every: int
     checkpoint_every: int  # env steps per run between checkpoints; 0: none
-    eval_every: int = 0  # env steps per run between evaluations of the deterministic policy; 0: none
-    eval_episodes: int = 10
-    devices: int | None = None  # local devices to train on (see rpo_jax.devices); None: all
-    shard_envs: bool = False  # split each run's environments over the devices instead of the runs
-    capture_video: bool = False  # videos of the deterministic policy during training (rpo_jax.video)
-    capture_video_every: int | None = None  # env steps per run between videos; None: VIDEOS_PER_RUN
-    capture_video_episodes: int = 2
+    eval_every: int = RunSpec.eval_every  # env steps per run between evaluations of the deterministic policy; 0: none
+    eval_episodes: int = RunSpec.eval_episodes
+    devices: int | None = Processes.devices  # local devices to train on (see rpo_jax.devices); None: all
+    shard_envs: bool = Processes.shard_envs  # split each run's environments over the devices instead of the runs
+    capture_video: bool = RunSpec.capture_video  # videos of the deterministic policy during training (rpo_jax.video)
+    capture_video_every: int | None = RunSpec.capture_video_every  # env steps per run between videos; None: VIDEOS_PER_RUN
+    capture_video_episodes: int = RunSpec.capture_video_episodes
     pbt: dict[str, Any] | None = None  # population-based training: the `Pbt` flags, pbt_every in env steps; None: off
     resuming: bool = False
     allow_relayout: bool = False  # resuming on another number of devices or processes (not bit-exact)
@@ -127,6 +120,14 @@ class RunPlan:
     @property
     def run_dir(self) -> RunDir:
         return RunDir(self.out)
+
+
+# What a resumed run of a config.json written before a field existed reads for it: the plan's
+# default, which is the flag's (evaluation, videos and PBT off, every device).
+PLAN_DEFAULTS = {
+    field.name: field.default for field in dataclasses.fields(RunPlan)
+    if field.name in PLAN_FIELDS and field.default is not dataclasses.MISSING
+}  # fmt: skip
 
 
 def new_plan(
@@ -186,8 +187,8 @@ def check_pbt(record: dict[str, Any], config: Config, runs: int) -> None:
         raise UsageError(f"--pbt-every must be >= 1 env step per member, got {record['pbt_every']!r}")
     if not isinstance(record["pbt_quantile"], float) or not 0 < record["pbt_quantile"] <= 0.5:
         raise UsageError(f"--pbt-quantile must be in (0, 0.5], got {record['pbt_quantile']!r}")
-    if record["pbt_explore"] not in pbt.EXPLORE_RULES:
-        raise UsageError(f"--pbt-explore must be one of {', '.join(pbt.EXPLORE_RULES)}, got {record['pbt_explore']!r}")
+    if record["pbt_explore"] not in EXPLORE_RULES:
+        raise UsageError(f"--pbt-explore must be one of {', '.join(EXPLORE_RULES)}, got {record['pbt_explore']!r}")
     pbt.parse_fields(str(record["pbt_fields"]), config.algo)
 
 
@@ -234,15 +235,6 @@ def check_video_fields(run: RunSpec) -> None:
         raise UsageError(
             "--capture-video-every and --capture-video-episodes must be >= 1, "
             f"got {run.capture_video_every}, {run.capture_video_episodes}"
-        )
-
-
-def check_seeds(seed: int, num_seeds: int) -> None:
-    """Refuses seeds outside the PRNG key's range [0, 2**32), which would train another seed's run."""
-    if not 0 <= seed or seed + num_seeds > SEED_LIMIT:
-        raise UsageError(
-            f"--seed must give seeds in [0, 2**32 - 1 = {SEED_LIMIT - 1}] (the PRNG key's range), "
-            f"got seeds {seed} to {seed + num_seeds - 1}"
         )
 
 
@@ -373,6 +365,16 @@ def describe_runs(plan: RunPlan, grid: list[dict[str, float]]) -> list[dict[str,
         {"run": index, "seed": seed, "hparams": {**defaults, **point}}
         for index, (point, seed) in enumerate(itertools.product(grid, plan.seeds))
     ]
+
+
+def point_label(run: dict[str, Any], swept: Sequence[str]) -> str:
+    """The sweep point of a run ("rpo_alpha=0.1"; empty without a sweep): what its seeds share."""
+    return "-".join(f"{name}={run['hparams'][name]:g}" for name in swept)
+
+
+def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
+    """A run's name among its siblings: its sweep point and seed ("rpo_alpha=0.1-seed_1")."""
+    return "-".join(filter(None, (point_label(run, swept), f"seed_{run['seed']}")))
 
 
 def versions() -> dict[str, str]:

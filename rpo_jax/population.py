@@ -20,6 +20,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from rpo_jax import pbt, ppo
 from rpo_jax.devices import Placement, is_primary
 from rpo_jax.plan import RunPlan
+from rpo_jax.scores import best_run
 
 # (placed state, scores [R], update) -> (placed state, donors [R])
 StepProgram = Callable[[ppo.TrainState, Any, Any], tuple[ppo.TrainState, jax.Array]]
@@ -83,10 +84,8 @@ def update_hyperparameters(placement: Placement, state: ppo.TrainState, runs: li
 
 
 def best_member(runs: list[dict[str, Any]]) -> int:
-    """The member with the best final score: its last evaluation's return where the runs were
-    evaluated (summarised), else its final training return."""
-    score = "eval_return" if "eval_return" in runs[0] else "final_return"
-    return int(np.argmax([run[score] for run in runs]))
+    """The summarised member with the best final score (`scores.best_run`)."""
+    return best_run([run.get("eval_return") for run in runs], [run["final_return"] for run in runs])
 
 
 def best_members(runs: list[dict[str, Any]], size: int) -> list[int]:

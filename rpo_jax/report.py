@@ -37,13 +37,12 @@ from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import (
-    CHECKPOINT_DIR, CONFIG_FILE, LINEAGE_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR,
-    VIDEOS_DIR, WANDB_DIR, RunDir,
+    CHECKPOINT_DIR, CONFIG_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LINEAGE_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE,
+    RESULTS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, VIDEOS_DIR, WANDB_DIR, RunDir, env_directory,
 )  # fmt: skip
 from rpo_jax.scores import kept_fraction, sample_std, tail_mean
 from rpo_jax.spec import parse
 
-RESULTS_FILE = "results.csv"
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
 REPORT_TITLE = "# Report: "  # report.md's first line starts so: how check_out knows its own file
@@ -94,7 +93,7 @@ def read_results(directory: Path) -> list[dict]:
 # What the report may find in --out besides its own files: an experiment's (report.md goes
 # next to the results it was made from), a training run's (a run's report goes into its
 # directory), and the lock of a run writing there.
-EXPERIMENT_FILES = (RESULTS_FILE, "experiment.json", "runs", LOCK_FILE)
+EXPERIMENT_FILES = (RESULTS_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE)
 RUN_FILES = (
     CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, PARAMS_FILE, TENSORBOARD_DIR, CHECKPOINT_DIR, LOCK_FILE, WANDB_DIR, LINEAGE_FILE,
     VIDEOS_DIR,
@@ -226,7 +225,7 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
     for env in unique(row["env"] for row in rows):
         series = {v: list(runs[env, v].values()) for v in variants if (env, v) in runs}
         panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy (sum over action dimensions)"))
-        path = out / f"{figures.slug(env)}-curves.png"
+        path = out / f"{env_directory(env)}-curves.png"
         marks = reference.marks(published or {}, env, {v: algos[v] for v in series})
         written.append(figures.curves(path, env, series, panels, colours, marks))
     table = aggregates(scores, variants)

@@ -11,6 +11,10 @@
 | `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.checkpoint`) |
 | `.lock` | the PID of the process writing the run; locked while it does (`hold_lock`) |
 | `wandb/` | W&B's files of `--track wandb` (offline runs for `wandb sync`) |
+
+An experiment's directory (`rpo_jax.experiment`) holds `experiment.json` (its definition),
+`results.csv` (what `rpo_jax.report` reads) and one run directory per environment and job, at
+`runs/<env_directory(env)>/<job>`.
 """
 
 from __future__ import annotations
@@ -37,6 +41,14 @@ VIDEOS_DIR = "videos"  # --capture-video's, one folder per run where several tra
 LOCK_FILE = ".lock"
 WANDB_DIR = "wandb"  # W&B makes it in the run directory (`tracking.WandbSink`) unless WANDB_DIR is set
 LINEAGE_FILE = "pbt.jsonl"
+EXPERIMENT_FILE = "experiment.json"
+RESULTS_FILE = "results.csv"
+EXPERIMENT_RUNS_DIR = "runs"
+
+
+def env_directory(env: str) -> str:
+    """`env`'s name as a file or directory name: / and an import path's : as _."""
+    return env.replace("/", "_").replace(":", "_")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,7 +17,6 @@ import contextlib
 import dataclasses
 import functools
 import math
-import os
 import shutil
 import sys
 import time
@@ -32,7 +31,7 @@ from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpoint
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
-from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, training_record
+from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label, training_record
 from rpo_jax.policy import params_bytes
 from rpo_jax.records import first_nonfinite, logged_rows, progress_metrics, record_returns, summarise
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
@@ -55,24 +54,12 @@ class Sink(Protocol):
 ProgressFn = Callable[[int, dict[str, float]], None]
 
 
-def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
-    """A run's name among its siblings: its swept values and seed."""
-    return "-".join([f"{name}={run['hparams'][name]:g}" for name in swept] + [f"seed_{run['seed']}"])
-
-
 def chunk_length(num_updates: int, target_chunks: int = 50, at_most: int | None = None) -> int:
     """The largest divisor of num_updates not above num_updates / target_chunks (nor `at_most`,
     the updates between evaluations): every chunk has the same length, so the chunk program
     compiles once."""
     limit = max(1, min(num_updates // target_chunks, at_most or num_updates))
     return max(d for d in range(1, limit + 1) if num_updates % d == 0)
-
-
-def compile_cache_dir() -> Path:
-    """The default of JAX's persistent compilation cache: $XDG_CACHE_HOME/rpo_jax/jax, where
-    XDG_CACHE_HOME defaults to ~/.cache. A second identical run reads its programs from there
-    instead of compiling them again."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rpo_jax" / "jax"
 
 
 def use_compile_cache(directory: Path | None) -> None:

@@ -1,4 +1,5 @@
-"""How a run's logged curve becomes one number: its final value and how much of its best it kept."""
+"""How a run's logged curve becomes one number (its final value, how much of its best it kept),
+and which of several runs is the best."""
 
 from __future__ import annotations
 
@@ -36,3 +37,12 @@ def with_spread(value: str, spread: str, seeds: int) -> str:
     """`value` followed by `spread` (" ± 0.12") where there are several seeds. One seed has no
     spread to show: a "± 0.00" would read as a measured one."""
     return value + spread if seeds > 1 else value
+
+
+def best_run(eval_returns: Sequence[float | None], final_returns: Sequence[float]) -> int:
+    """The index of the best of several runs (a population's best member): the highest last
+    evaluation return where every run was evaluated, else the highest final training return
+    (`tail_mean` of its episode returns); ties to the first."""
+    if all(value is not None for value in eval_returns):
+        return int(np.argmax(eval_returns))
+    return int(np.argmax(final_returns))

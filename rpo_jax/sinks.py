@@ -16,6 +16,7 @@ from rpo_jax.video import ffmpeg_started
 # The trainer's metrics less the step counter, which is TensorBoard's x axis.
 TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name != "env_steps")
 HPARAMS_METRICS = ("train/episode_return", "eval/episode_return")
+VIDEO_TAG = "video/episodes"
 
 
 def run_hyperparameters(record: dict[str, Any], run: dict[str, Any]) -> dict[str, Any]:
@@ -26,9 +27,14 @@ def run_hyperparameters(record: dict[str, Any], run: dict[str, Any]) -> dict[str
     return {name: value if isinstance(value, (bool, int, float, str)) else str(value) for name, value in values.items()}
 
 
-def point_label(record: dict[str, Any], run: dict[str, Any]) -> str:
-    """The sweep point of a run ("rpo_alpha=0.1"; empty without a sweep): what its seeds share."""
-    return "-".join(f"{name}={run['hparams'][name]:g}" for name in record["sweep"])
+def row_scalars(row: dict[str, Any]) -> dict[str, float]:
+    """A logged row's scalars by the trackers' tag: the trainer's metrics and steps/s under
+    train/, the evaluation return under eval/."""
+    scalars = {f"train/{name}": row[name] for name in TENSORBOARD_METRICS}
+    scalars["train/sps"] = row["sps"]
+    if "eval_return" in row:
+        scalars["eval/episode_return"] = row["eval_return"]
+    return scalars
 
 
 class EventFile:
@@ -82,14 +88,11 @@ class TensorBoardSink:
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
             file, step = self.files[row["run"]], row["env_steps"]
-            for name in TENSORBOARD_METRICS:
-                file.add_scalar(f"train/{name}", row[name], step)
-            file.add_scalar("train/sps", row["sps"], step)
-            if "eval_return" in row:
-                file.add_scalar("eval/episode_return", row["eval_return"], step)
+            for tag, value in row_scalars(row).items():
+                file.add_scalar(tag, value, step)
             # A resumed run rebuilds from the kept rows: a video deleted since has no picture to show.
             if "video" in row and (self.run_dir.path / row["video"]).exists():
-                file.add(gif_summary("video/episodes", self.run_dir.path / row["video"]), step)
+                file.add(gif_summary(VIDEO_TAG, self.run_dir.path / row["video"]), step)
         for file in self.files:
             file.flush()
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import os
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Sequence, TypeVar
@@ -19,7 +20,7 @@ import tyro
 
 from rpo_jax.config import PRESETS
 from rpo_jax.errors import UsageError
-from rpo_jax.hyperparams import SWEEPABLE
+from rpo_jax.hyperparams import LOG_SCALE, SWEEPABLE
 from rpo_jax.rundir import PARAMS_FILE, RunDir
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -29,6 +30,18 @@ EvalEpisodes = Annotated[int, tyro.conf.arg(help="episodes per evaluation, on fr
 RunDirectory = Annotated[Path, tyro.conf.arg(metavar="RUN_DIR", help="a directory written by rpo_jax.train")]
 # --sweep's help names the hyperparameters from their one declaration (`hyperparams.Hyperparams`).
 SWEEP_HELP = f"NAME=V1,V2,...: every value x every other sweep x seeds in one program; NAME in {', '.join(SWEEPABLE)}"
+# Population-based training's explore rules, and the factors that "perturb" multiplies by, each
+# as likely (the paper's 0.8 and 1.2; 1.25 undoes 0.8, so that a value perturbed both ways comes back).
+EXPLORE_RULES = ("perturb", "resample")
+PERTURB_FACTORS = (0.8, 1.25)
+PBT_FIELDS_HELP = (
+    "NAME=LOW:HIGH,... the hyperparameters explored and their ranges; each member starts from values drawn within "
+    f"them (log-uniform for {' and '.join(LOG_SCALE)}); NAME in {', '.join(SWEEPABLE)}"
+)
+PBT_EXPLORE_HELP = (
+    f"perturb: multiply each explored value by {' or '.join(map(str, PERTURB_FACTORS))}; "
+    "resample: draw it again within its range; clipped to it"
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,14 +82,11 @@ class Pbt:
     """members of the population, trained together in one program, with --pbt"""
     pbt_every: int | None = None
     """env steps per member between exploit/explore steps (in whole chunks of updates); None: a tenth of the run"""
-    pbt_fields: str = "rpo_alpha=0.001:1.0,lr=1e-5:1e-3"
-    """NAME=LOW:HIGH,... the hyperparameters explored and their ranges; each member starts from values drawn within
-    them (log-uniform for rpo_alpha and lr); NAME in rpo_alpha, ent_coef, lr, drac_coef"""
+    pbt_fields: Annotated[str, tyro.conf.arg(help=PBT_FIELDS_HELP)] = "rpo_alpha=0.001:1.0,lr=1e-5:1e-3"
     pbt_quantile: float = 0.25
     """the bottom fraction of members (by recent training return, or the last evaluation's with --eval-every) that copy
     members of the top fraction, in (0, 0.5]"""
-    pbt_explore: Literal["perturb", "resample"] = "perturb"
-    """perturb: multiply each explored value by 0.8 or 1.25; resample: draw it again within its range; clipped to it"""
+    pbt_explore: Annotated[Literal[EXPLORE_RULES], tyro.conf.arg(help=PBT_EXPLORE_HELP)] = "perturb"  # type: ignore[valid-type]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +95,18 @@ class CompileCache:
 
     compile_cache: bool = True
     """keep compiled programs in JAX's persistent cache, $XDG_CACHE_HOME/rpo_jax/jax (default ~/.cache/rpo_jax/jax)"""
+
+    @property
+    def cache_directory(self) -> Path | None:
+        """The compile cache's directory (`compile_cache_dir`); None with --no-compile-cache."""
+        return compile_cache_dir() if self.compile_cache else None
+
+
+def compile_cache_dir() -> Path:
+    """The default of JAX's persistent compilation cache: $XDG_CACHE_HOME/rpo_jax/jax, where
+    XDG_CACHE_HOME defaults to ~/.cache. A second identical run reads its programs from there
+    instead of compiling them again."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "rpo_jax" / "jax"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,6 +180,18 @@ class Tracking:
     """offline: write under OUT/wandb for `wandb sync`; None: W&B's default (the WANDB_MODE variable, else online)"""
     wandb_group: str | None = None
     """W&B group of the runs; None: the output directory's name. Each sweep point's seeds form GROUP/POINT"""
+
+
+# jax.random.PRNGKey keeps the low 32 bits of a seed: larger ones would alias smaller ones.
+SEED_LIMIT = 2**32
+
+
+def check_seeds(seed: int, num_seeds: int) -> None:
+    """Refuses seeds outside the PRNG key's range [0, 2**32), which would train (or evaluate)
+    with another seed's key."""
+    if not 0 <= seed or seed + num_seeds > SEED_LIMIT:
+        given = f"seed {seed}" if num_seeds == 1 else f"seeds {seed} to {seed + num_seeds - 1}"
+        raise UsageError(f"--seed must give seeds in [0, 2**32 - 1 = {SEED_LIMIT - 1}] (the PRNG key's range), got {given}")
 
 
 Args = TypeVar("Args")

@@ -1,7 +1,7 @@
 """Experiment tracking with Weights & Biases: `--track wandb` (the `wandb` extra).
 
 Every run of a command (one seed at one sweep point) is one W&B run, named after the run
-directory and its label (`runner.run_label`), with the config, the run's hyperparameters and
+directory and its label (`plan.run_label`), with the config, the run's hyperparameters and
 seed as its W&B config. The seeds of one sweep point share a W&B group, `GROUP/POINT`, where
 GROUP is the run directory's name by default (an experiment passes `experiment/env/job`) and
 POINT the swept values, so W&B's grouped view shows each point's mean over seeds. Rows are
@@ -29,7 +29,8 @@ from typing import Any, Iterator
 
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import RunDir
-from rpo_jax.sinks import TENSORBOARD_METRICS, point_label, run_hyperparameters
+from rpo_jax.plan import point_label
+from rpo_jax.sinks import VIDEO_TAG, row_scalars, run_hyperparameters
 
 
 class WandbSink:
@@ -61,7 +62,7 @@ class WandbSink:
                 started = self.wandb.init(
                     project=self.project, entity=self.entity, mode=self.mode, dir=directory,
                     id=f"{prefix}-{run['run']}", resume="allow", reinit="create_new",
-                    name=f"{run_dir.path.name}/{label}", group="/".join(filter(None, (group, point_label(record, run)))),
+                    name=f"{run_dir.path.name}/{label}", group="/".join(filter(None, (group, point_label(run, record["sweep"])))),
                     job_type=record["env"], config=run_hyperparameters(record, run),
                     settings=self.wandb.Settings(console="off", silent=True, disable_git=True, x_disable_stats=True),
                 )  # fmt: skip
@@ -70,12 +71,9 @@ class WandbSink:
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         for row in rows:
-            values = {f"train/{name}": row[name] for name in TENSORBOARD_METRICS}
-            values["train/sps"] = row["sps"]
-            if "eval_return" in row:
-                values["eval/episode_return"] = row["eval_return"]
+            values: dict[str, Any] = row_scalars(row)
             if "video" in row:
-                values["video/episodes"] = self.wandb.Video(str(self.run_dir.path / row["video"]), format="mp4")
+                values[VIDEO_TAG] = self.wandb.Video(str(self.run_dir.path / row["video"]), format="mp4")
             with quiet_logging():
                 self.runs[row["run"]].log(values, step=row["env_steps"])
             self.logged[row["run"]] += 1

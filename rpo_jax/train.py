@@ -29,6 +29,7 @@ import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import UsageError, command_failures
+from rpo_jax.rundir import env_directory
 from rpo_jax.scores import with_spread
 from rpo_jax.spec import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
 
@@ -99,8 +100,8 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
-    env = args.env.replace("/", "_").replace(":", "_")  # an import path's colon: not in a directory's name
-    out = args.run.out or Path("runs") / f"{env}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    name = f"{env_directory(args.env)}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = args.run.out or Path("runs") / name
     run = dataclasses.replace(args.run, out=out)
     return plans.new_plan(args.env, args.config, run, args.processes, args.preset, population=args.pbt)
 
@@ -113,7 +114,7 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
     from rpo_jax.sinks import ProgressDisplay, TensorBoardSink
 
     progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, tracking.quiet or not is_primary())
-    runner.use_compile_cache(runner.compile_cache_dir() if processes.compile_cache else None)
+    runner.use_compile_cache(processes.cache_directory)
     sinks: list[Any] = [TensorBoardSink()]
     if tracking.track == "wandb":
         from rpo_jax.tracking import WandbSink

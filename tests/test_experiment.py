@@ -18,6 +18,7 @@ import pytest
 from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
 from rpo_jax import plan as plan_module
 from rpo_jax.errors import UsageError
+from rpo_jax.spec import Processes, RunSpec
 from rpo_jax.rundir import CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
@@ -249,6 +250,28 @@ def test_jobs_picks_some_of_an_experiments_jobs_and_refuses_unknown_ones(capsys)
     assert experiment.main(["truncation", "--envs", "cartpole", "--jobs", "rpo-forever"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--jobs rpo-forever: truncation has jobs ppo-bootstrap" in err
+
+
+def test_experiment_json_records_the_run_flags_given_only():
+    # Experiments recorded before these flags existed continue: a flag at its default is not written.
+    definition = experiment.resolve(experiment.parse_args(["ppo-vs-rpo", "--envs", "cartpole"]))
+    assert not set(experiment.RECORDED_WHERE_GIVEN) & set(definition)
+    argv = ["ppo-vs-rpo", "--envs", "cartpole", "--seed", "7", "--capture-video", "--capture-video-episodes", "3"]
+    definition = experiment.resolve(experiment.parse_args(argv))
+    assert {name: definition[name] for name in experiment.RECORDED_WHERE_GIVEN if name in definition} == {
+        "seed": 7, "capture_video": True, "capture_video_episodes": 3,
+    }  # fmt: skip
+
+
+def test_a_config_json_without_a_plan_field_reads_the_flags_default():
+    flags = {**vars(RunSpec()), **vars(Processes())}
+    assert plan_module.PLAN_DEFAULTS == {
+        name: flags.get(name) for name in plan_module.PLAN_FIELDS if name in plan_module.PLAN_DEFAULTS
+    }  # fmt: skip
+    assert set(plan_module.PLAN_DEFAULTS) == {
+        "eval_every", "eval_episodes", "devices", "shard_envs", "capture_video", "capture_video_every",
+        "capture_video_episodes", "pbt",
+    }  # fmt: skip
 
 
 def help_flags(module: str) -> set[str]:

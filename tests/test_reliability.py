@@ -145,7 +145,7 @@ def test_an_out_under_a_file_or_not_writable_is_refused(tmp_path, capsys, monkey
     assert "is a file, not a directory" in one_line(capsys)
     assert (tmp_path / "file").read_text() == "mine"
     # Root may write anywhere but on a read-only file system, where access(2) says no.
-    monkeypatch.setattr(runner.os, "access", lambda path, mode: False)
+    monkeypatch.setattr("rpo_jax.plan.os.access", lambda path, mode: False)
     assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "ro" / "run")]) == 2
     assert "is not writable (read-only file system or no permission)" in one_line(capsys)
 
@@ -551,7 +551,7 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
             [], "unknown env 'nope'",
         ),
         (lambda out: None, ["--video", "no/such/dir/x.mp4"], "the directory"),
-        (lambda out: None, ["--seed", str(2**32)], "--seed must be in [0, 2**32 - 1]"),
+        (lambda out: None, ["--seed", str(2**32)], "(the PRNG key's range), got seed 4294967296"),
         (lambda out: None, ["--eval-episodes", "0"], "--eval-episodes must be >= 1, got 0"),
         (lambda out: None, ["--deterministic"], "--deterministic is the default now (--stochastic samples instead)"),
         (lambda out: None, ["--run", "-1"], "--run must be in [0, 1), got -1"),
@@ -632,6 +632,20 @@ def test_experiment_refuses_envs_that_would_share_a_directory(tmp_path, capsys, 
     # The names of existing experiments' directories are kept, so that they continue.
     job = experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]
     assert experiment.run_dir(out, "test/point_mass", job) == out / "runs" / "test_point_mass" / job.name
+
+
+def test_an_env_has_one_file_name_in_runs_experiments_and_figures(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+    monkeypatch.chdir(tmp_path)
+    argv = ["--env", "point_mass:PointMass", "--total-timesteps", "64", "--num-envs", "4", "--num-steps", "16"]
+    plan = train.make_plan(train.parse_args(argv), argv)
+    assert plan.out.parent == Path("runs") and plan.out.name.startswith("point_mass_PointMass-rpo-"), plan.out
+    job = experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]
+    assert experiment.run_dir(tmp_path, "point_mass:PointMass", job).parent.name == "point_mass_PointMass"
+    rows = [{"env": "point_mass:PointMass", "variant": "rpo", "algo": "rpo", "seed": 1.0, "update": 1.0,
+             "env_steps": 64.0, "episode_return": 1.0, "episodes_finished": 1.0, "policy_entropy": 0.5}]  # fmt: skip
+    written = report.write_figures(rows, {}, tmp_path / "figures")
+    assert "point_mass_PointMass-curves.png" in {Path(path).name for path in written}, written
 
 
 def test_library_errors_are_usage_errors():

@@ -96,7 +96,7 @@ def edit_config(out: Path, part: str, **changes) -> None:
 @pytest.mark.parametrize(
     "part, changes, message",
     [
-        ("plan", {"seed": 2**40}, "--seed must give seeds in [0, 2**32 - 1 = 4294967295] (the PRNG key's range), got seeds"),
+        ("plan", {"seed": 2**40}, "--seed must give seeds in [0, 2**32 - 1 = 4294967295] (the PRNG key's range), got seed"),
         ("plan", {"seed": "x"}, "seed must be int, got 'x'"),
         ("plan", {"seed": True}, "seed must be int, got True"),
         ("plan", {"num_seeds": 0}, "--num-seeds must be >= 1, got 0"),

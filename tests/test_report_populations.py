@@ -7,7 +7,7 @@ import json
 import pytest
 from test_report_statistics import rows_of
 
-from rpo_jax import pbt_report, report
+from rpo_jax import pbt_report, population, report
 
 JOBS = [
     {"name": "ppo", "algo": "ppo", "config": [], "sweep": None},
@@ -75,8 +75,12 @@ def test_the_schedules_and_the_members_returns_are_drawn(built):
 def test_the_best_member_is_chosen_by_evaluation_where_every_member_was_evaluated():
     members = [[{"episode_return": final, "eval_return": last}] for final, last in ((300.0, 1.0), (100.0, 5.0))]
     assert pbt_report.best_index(members) == 1
+    summarised = [{"final_return": 300.0, "eval_return": 1.0}, {"final_return": 100.0, "eval_return": 5.0}]
+    assert population.best_member(summarised) == 1  # summary.json's choice, from the same numbers
     members[0][0].pop("eval_return")
     assert pbt_report.best_index(members) == 0  # the final training return, as summary.json's
+    summarised[0].pop("eval_return")
+    assert population.best_member(summarised) == 0
 
 
 def test_unfinished_populations_are_one_line(tmp_path):

@@ -13,7 +13,7 @@ from point_mass import PointMass
 from test_host import SPEC as HOST_SPEC
 from test_host import host_point_mass
 
-from rpo_jax import envs, evaluate, export, load_policy, plan, runner, train
+from rpo_jax import envs, evaluate, export, load_policy, plan, runner, spec, train
 from rpo_jax.experiment import Job, progress_line
 from rpo_jax.tracking import wandb_records
 
@@ -90,6 +90,10 @@ def test_wandb_offline_and_tensorboard_hold_metrics_hyperparameters_and_groups(p
         hparams = plugin_data_pb2.HParamsPluginData.FromString(content).session_start_info.hparams
         assert hparams["ent_coef"].number_value == (0.01 if label.startswith("ent_coef=0.01") else 0.0)
         assert hparams["seed"].number_value == int(label[-1]) and hparams["algo"].string_value == "rpo"
+        # W&B's run holds the same tags as TensorBoard's (`sinks.row_scalars`).
+        run = next(run for run in runs if run["name"] == f"sweep/{label}")
+        logged = {key for step in run["history"] for key in step if not key.startswith("_")}
+        assert logged == set(events.Tags()["scalars"]), (logged, events.Tags()["scalars"])
 
 
 def test_eval_return_on_a_host_side_task_and_only_when_asked(point_mass_env, tmp_path):
@@ -156,7 +160,7 @@ def test_evaluate_keeps_its_program_in_the_compile_cache_unless_told_not_to(poin
     monkeypatch.setattr(runner, "use_compile_cache", chosen.append)
     assert evaluate.main([str(run_dir)]) == 0
     assert evaluate.main([str(run_dir), "--no-compile-cache"]) == 0
-    assert chosen == [runner.compile_cache_dir(), None]
+    assert chosen == [spec.compile_cache_dir(), None]
 
 
 def test_exports_act_as_load_policy(tmp_path):
@@ -207,9 +211,9 @@ def test_default_checkpoints_only_for_long_runs():
 
 def test_compile_cache_lives_under_the_user_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    assert runner.compile_cache_dir() == tmp_path / "rpo_jax" / "jax"
+    assert spec.compile_cache_dir() == tmp_path / "rpo_jax" / "jax"
     monkeypatch.delenv("XDG_CACHE_HOME")
-    assert runner.compile_cache_dir() == Path.home() / ".cache" / "rpo_jax" / "jax"
+    assert spec.compile_cache_dir() == Path.home() / ".cache" / "rpo_jax" / "jax"
 
 
 def test_experiment_progress_line_names_each_variant():

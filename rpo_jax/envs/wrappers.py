@@ -257,11 +257,16 @@ class RunningMeanStd:
         m2 = self.var * self.count + batch_var * batch_count + delta**2 * self.count * batch_count / count
         return RunningMeanStd(mean, m2 / count, count)
 
+    @property
+    def std(self) -> jax.Array:
+        """The standard deviation that standardises: never zero, where a feature is constant."""
+        return jnp.sqrt(self.var + 1e-8)
+
     def standardize(self, x: jax.Array) -> jax.Array:
-        return (x - self.mean) / jnp.sqrt(self.var + 1e-8)
+        return (x - self.mean) / self.std
 
     def unstandardize(self, x: jax.Array) -> jax.Array:
-        return x * jnp.sqrt(self.var + 1e-8) + self.mean
+        return x * self.std + self.mean
 
 
 def normalize_observation(obs: jax.Array, stats: RunningMeanStd, clip: float) -> jax.Array:
@@ -371,7 +376,7 @@ class NormalizeReward:
         discounted = state.discounted_return * self.gamma + reward
         stats = state.return_stats.update(discounted, self.axis_name)
         if self.normalize:
-            reward = jnp.clip(reward / jnp.sqrt(stats.var + 1e-8), -self.clip, self.clip)
+            reward = jnp.clip(reward / stats.std, -self.clip, self.clip)
         discounted = jnp.where(ts.terminated | ts.truncated, 0.0, discounted)
         return NormalizeRewardState(inner, discounted, stats), ts.replace(reward=reward)
 
