@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs
-from rpo_jax.envs import dmc_tasks
+from rpo_jax.envs import dmc, dmc_tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "dmc_reference.json").read_text())
@@ -96,6 +96,51 @@ def test_returns_of_a_fixed_action_sequence_agree_with_dm_control(task):
 def test_returns_of_a_fixed_action_sequence_agree_with_dm_control_on_every_paper_task(task):
     pytest.importorskip("envpool")
     assert_agrees_with_dm_control(task)
+
+
+def public_steps(task: str, seed: int, actions: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+    """The steps of `DmcSimulators` taken through envpool's public `send`, `recv` and `reset`:
+    (obs, reward, terminated, truncated, final_obs) with auto-reset, in env order."""
+    import envpool
+
+    n, keys = actions.shape[1], [key for key, _ in dmc_tasks.TASKS[task][1]]
+    pool = envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=2, seed=seed)
+
+    def flat(observation):
+        obs = np.concatenate([np.asarray(getattr(observation, key)).reshape(len(observation.env_id), -1) for key in keys], 1)
+        return obs[np.argsort(observation.env_id)], np.sort(observation.env_id)
+
+    pool.reset(np.arange(n))
+    steps = []
+    for action in actions:
+        pool.send(np.asarray(action, np.float64), np.arange(n))
+        ts = pool.recv()
+        order = np.argsort(ts.observation.env_id)
+        reached, _ = flat(ts.observation)
+        last, discount = np.asarray(ts.step_type)[order] == 2, np.asarray(ts.discount)[order]
+        obs = reached.copy()
+        if last.any():
+            fresh, ids = flat(pool.reset(np.flatnonzero(last)).observation)
+            obs[ids] = fresh
+        steps.append((obs, np.asarray(ts.reward)[order], last & (discount == 0), last & (discount > 0), reached))
+    return steps
+
+
+@pytest.mark.parametrize("task", ["pendulum-swingup", "hopper-stand"])
+def test_the_pools_own_send_and_recv_step_as_envpools_public_api(task):
+    """`DmcSimulators` steps through envpool's `_send` and `_recv`; across an episode's end
+    every output, dtype included, equals what the public calls give."""
+    pytest.importorskip("envpool")
+    actions = np.random.default_rng(0).uniform(-1, 1, (1005, 3, dmc_tasks.TASKS[task][0])).astype(np.float32)
+    pools = dmc.DmcSimulators(task, 3, 11)
+    pools.reset()
+    ended = 0
+    for t, (action, expected) in enumerate(zip(actions, public_steps(task, 11, actions))):
+        got = pools.step(action)
+        for name, value, want in zip(("obs", "reward", "terminated", "truncated", "final_obs"), got, expected):
+            assert value.dtype == want.dtype and np.array_equal(value, want), (t, name)
+        ended += got[3].sum()
+    assert ended == 3  # every environment's episode ended once, at 1000 steps
 
 
 def test_stepped_by_the_trainer_same_key_same_episodes_truncated_at_1000():

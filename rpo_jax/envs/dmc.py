@@ -59,17 +59,36 @@ def envpool_task_id(task: str) -> str:
     return f"{camel}-v1"
 
 
+def pool_threads(num_envs: int) -> int:
+    """envpool's threads for a pool of `num_envs`: more threads than cores only adds switching."""
+    return min(num_envs, os.cpu_count() or 1)
+
+
 class DmcSimulators:
-    """One envpool pool of `num_envs` copies of a task, auto-reset within the step."""
+    """One envpool pool of `num_envs` copies of a task, auto-reset within the step.
+
+    A step goes through envpool's own `_send` and `_recv`, the calls under its public `send`
+    and `recv`, which rebuild the action's list and the result's named tuples at every step: on
+    a cheap task that is a third of the step (benchmarks/RESULTS.md, "The host step's own
+    overhead"). tests/test_dmc.py checks this path against the public one across an episode's
+    end, for the envpool releases that pyproject.toml allows."""
 
     def __init__(self, task: str, num_envs: int, seed: int) -> None:
         import envpool
 
         self.keys = [key for key, _ in TASKS[task][1]]
         self.env_ids = np.arange(num_envs)
-        # More threads than cores only adds switching; envpool seeds env i with seed + i.
-        threads = min(num_envs, os.cpu_count() or 1)
-        self.pool = envpool.make_dm(envpool_task_id(task), num_envs=num_envs, num_threads=threads, seed=seed)
+        # envpool seeds env i with seed + i.
+        self.pool = envpool.make_dm(
+            envpool_task_id(task), num_envs=num_envs, num_threads=pool_threads(num_envs), seed=seed
+        )
+        # The layouts of `_send`'s and `_recv`'s lists of arrays, read once.
+        self.action_parts = self.pool._from(np.zeros((num_envs, TASKS[task][0])), self.env_ids)
+        self.action_index = len(self.action_parts) - 1  # the action comes last, after the env ids
+        where = {name: index for index, name in enumerate(self.pool._state_keys)}
+        self.result_index = [where[f"obs:{key}"] for key in self.keys]
+        self.env_id_index, self.reward_index = where["info:env_id"], where["reward"]
+        self.discount_index, self.step_type_index = where["discount"], where["step_type"]
 
     def _flatten(self, observation: Any) -> tuple[np.ndarray, np.ndarray]:
         """(env ids, observations [n, obs]) of one envpool result, in dm_control's key order."""
@@ -88,23 +107,28 @@ class DmcSimulators:
 
     def send(self, action: np.ndarray) -> None:
         """Starts a step on envpool's threads; `receive` collects it."""
-        self.pool.send(np.asarray(action, np.float64), self.env_ids)
+        parts = list(self.action_parts)
+        parts[self.action_index] = np.asarray(action, np.float64)
+        self.pool._send(parts)
 
     def receive(self) -> tuple[np.ndarray, ...]:
-        ts = self.pool.recv()
-        env_id, reached = self._flatten(ts.observation)
-        order = np.argsort(env_id)
-        reached = reached[order]
-        last = np.asarray(ts.step_type)[order] == 2  # dm_env.StepType.LAST
-        discount = np.asarray(ts.discount)[order]
-        reward = np.asarray(ts.reward)[order]
+        state = self.pool._recv()
+        n = len(self.env_ids)
+        reached = np.concatenate([state[index].reshape(n, -1) for index in self.result_index], axis=1)
+        env_id, reward = state[self.env_id_index], state[self.reward_index]
+        discount, step_type = state[self.discount_index], state[self.step_type_index]
+        if not np.array_equal(env_id, self.env_ids):  # a pool stepped whole answers in order
+            order = np.argsort(env_id)
+            reached, step_type, discount, reward = reached[order], step_type[order], discount[order], reward[order]
+        last = step_type == 2  # dm_env.StepType.LAST
+        if not last.any():
+            return reached, reward.copy(), np.zeros_like(last), np.zeros_like(last), reached.copy()
         obs = reached.copy()
-        if last.any():
-            # Reset now rather than on envpool's next step, so the next action is taken in the
-            # new episode, as the protocol's auto-reset requires.
-            fresh_id, fresh = self._flatten(self.pool.reset(np.flatnonzero(last)).observation)
-            obs[fresh_id] = fresh
-        return obs, reward, last & (discount == 0), last & (discount > 0), reached
+        # Reset now rather than on envpool's next step, so the next action is taken in the
+        # new episode, as the protocol's auto-reset requires.
+        fresh_id, fresh = self._flatten(self.pool.reset(np.flatnonzero(last)).observation)
+        obs[fresh_id] = fresh
+        return obs, reward.copy(), last & (discount == 0), last & (discount > 0), reached
 
     def close(self) -> None:
         self.pool.close()

@@ -154,11 +154,13 @@ class BatchedHostEnv:
         """handle [*runs] and action [*runs, N, act]: under `jax.vmap` the runs' steps arrive in
         one call (`runs` empty without it), and their pools are stepped side by side."""
         batch = handle.shape
-        if all(int(h) in self.closed for h in handle.reshape(-1)):
+        if self.closed and all(int(h) in self.closed for h in handle.reshape(-1)):
             # A program still running when its pools were closed (the last chunk of an interrupted
             # run, on another device): its results are thrown away, so it steps nothing, and
             # ends without an error that JAX would print at exit.
             return tuple(np.zeros((*batch, *shape.shape), shape.dtype) for shape in self.step_shapes)
+        if not batch:
+            return self.pools[int(handle)].step(action)
         pools = [self.pools[int(h)] for h in handle.reshape(-1)]
         results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
         return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))

@@ -1,0 +1,100 @@
+"""Seeds of a host-side task on one CPU device against the same seeds split over two, by phase.
+
+    cd benchmarks && PYTHONPATH=..:. python seed_placement.py --env dmc/pendulum-swingup --seeds 5
+
+The process splits the CPU into two JAX devices (`jax_num_cpu_devices`, as `train --cpu-devices
+2` does). Three placements of the paper preset's update (8 environments x 256 steps): one seed;
+--seeds vmapped on one device; --seeds on both devices (the runs placement, padded to a multiple
+of 2, as `rpo_jax.devices` pads them). For each, the rollout alone, the minibatch epochs alone
+and the whole update (rollout, batch and epochs), each compiled once and timed in interleaved
+rounds; printed as medians and as the ratio to one seed's time. Then one more rollout of each,
+with the CPU time all the process's threads spent on it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+
+import jax
+
+jax.config.update("jax_num_cpu_devices", 2)  # before any computation
+
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+from phases import interleaved  # noqa: E402
+from rpo_jax import devices, envs, ppo  # noqa: E402
+from rpo_jax.config import PRESETS  # noqa: E402
+
+
+def phases_of(trainer: ppo.Trainer) -> dict:
+    """One run's phases, each a function of its training state."""
+
+    def rollout(state: ppo.TrainState) -> ppo.TrainState:
+        env_state, obs, _ = ppo.rollout(trainer, state.params, state.env_state, state.obs, state.key)
+        return state.replace(env_state=env_state, obs=obs)
+
+    def epochs(state: ppo.TrainState, batch: object) -> tuple:
+        return ppo.minibatch_epochs(trainer, state.hparams, state.params, state.opt_state, batch, state.key)
+
+    def batch_of(state: ppo.TrainState) -> object:
+        traj = ppo.rollout(trainer, state.params, state.env_state, state.obs, state.key)[2]
+        return ppo.make_batch(trainer, state.params, traj, state.value_stats)[0]
+
+    return {"rollout": rollout, "minibatch epochs": epochs, "whole update": lambda s: trainer.update(s)[0], "batch": batch_of}
+
+
+def placed(fn, num_devices: int):
+    """`fn` vmapped over runs, jitted on device 0 or split over a 2-device mesh."""
+    if num_devices == 1:
+        return jax.jit(jax.vmap(fn))
+    mesh = Mesh(jax.devices()[:num_devices], (devices.AXIS,))
+    spec = PartitionSpec(devices.AXIS)
+    return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="dmc/pendulum-swingup")
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--rounds", type=int, default=7)
+    args = parser.parse_args()
+    config = dataclasses.replace(PRESETS["paper"], num_envs=8, num_steps=256, rpo_alpha=0.5)
+    trainer = ppo.make_trainer(dataclasses.replace(config, total_timesteps=config.batch_size), envs.make_env(args.env))
+    phases = phases_of(trainer)
+    padded = -(-args.seeds // 2) * 2
+    layouts = {"1 seed": (1, 1), f"{args.seeds} seeds, 1 device": (args.seeds, 1), f"{args.seeds} seeds, 2 devices": (padded, 2)}
+    programs = {}
+    for layout, (runs, num_devices) in layouts.items():
+        keys = jax.random.split(jax.random.PRNGKey(0), runs)
+        if num_devices > 1:
+            keys = jax.device_put(keys, NamedSharding(Mesh(jax.devices()[:2], ("d",)), PartitionSpec("d")))
+        state = placed(trainer.init, num_devices)(keys)
+        batch = placed(phases["batch"], num_devices)(state)
+        for phase in ("rollout", "minibatch epochs", "whole update"):
+            program = placed(phases[phase], num_devices)
+            inputs = (state, batch) if phase == "minibatch epochs" else (state,)
+            programs[(phase, layout)] = lambda program=program, inputs=inputs: program(*inputs)
+    times = interleaved(programs, args.rounds)
+    print(f"{args.env}, paper preset, 8 envs x 256 steps, {args.rounds} rounds; ms, median (min)")
+    for phase in ("rollout", "minibatch epochs", "whole update"):
+        one = statistics.median(times[(phase, "1 seed")])
+        for layout in layouts:
+            seconds = times[(phase, layout)]
+            median = statistics.median(seconds)
+            print(f"{phase:<17} {layout:<20} {median * 1e3:8.1f} ({min(seconds) * 1e3:.1f})  {median / one:5.2f}x one seed")
+    # CPU time of every thread of the process over one more rollout: how much of the 2 cores
+    # each placement's rollout keeps busy, and so what splitting it over devices duplicates.
+    for layout in layouts:
+        run = programs[("rollout", layout)]
+        wall, cpu = time.perf_counter(), time.process_time()
+        jax.block_until_ready(run())
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        print(f"rollout, {layout}: {wall * 1e3:.0f} ms, {cpu * 1e3:.0f} ms of CPU ({cpu / wall:.2f} cores)")
+    trainer.close()
+
+
+if __name__ == "__main__":
+    main()
