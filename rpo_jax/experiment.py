@@ -12,7 +12,8 @@ under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md`
 Started again with the same command, an experiment skips the runs that finished and resumes
 the unfinished one from its last checkpoint, so a crash loses at most one checkpoint interval
 of one run (--checkpoint-every; by default a tenth of a run of 5M steps or more, and no
-checkpoint in shorter runs, which start again) and the compile time.
+checkpoint in shorter runs, which start again) and the compile time. The same command with more
+environments in --envs grows the experiment: its runs stay, and the new environments' train.
 """
 
 from __future__ import annotations
@@ -270,13 +271,26 @@ def run_dir(out: Path, env: str, job: Job) -> Path:
 
 
 def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
-    """A new directory, or the same experiment's directory to continue; nothing else. Writes
-    experiment.json into a new one where `write`."""
+    """A new directory, or the same experiment's directory to continue, or to grow by more
+    environments (its runs kept, each environment's runs in their own directory); nothing else.
+    Writes experiment.json into a new or grown one where `write`."""
     record = out / EXPERIMENT_FILE
     if record.is_file():
         saved = upgraded(json.loads(record.read_text()))
-        if saved != definition:
-            changed = sorted(k for k in definition.keys() | saved.keys() if saved.get(k) != definition.get(k))
+        changed = sorted(k for k in definition.keys() | saved.keys() if saved.get(k) != definition.get(k))
+        if changed == ["envs"] and set(saved["envs"]) <= set(definition["envs"]):
+            added = [env for env in definition["envs"] if env not in saved["envs"]]
+            if write:
+                if added:
+                    print(f"--out {out}: the experiment grows by {', '.join(added)}", flush=True)
+                write_json(record, definition)
+            return
+        if changed == ["envs"]:
+            raise UsageError(
+                f"--out {out} holds the experiment of --envs {' '.join(saved['envs'])}; give those "
+                "(more may be added), or a new --out"
+            )
+        if changed:
             raise UsageError(
                 f"--out {out} holds a different experiment (differs in {', '.join(changed)}); "
                 "give the same command to continue it, or a new --out"

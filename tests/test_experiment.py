@@ -311,6 +311,27 @@ def test_an_experiment_recorded_with_the_old_flag_names_continues(uninterrupted,
     assert "holds a different experiment (differs in config)" in capsys.readouterr().err
 
 
+def test_more_environments_grow_an_experiment_and_fewer_are_refused(tmp_path, capsys):
+    out = tmp_path / "grown"
+
+    def definition(*names: str, seeds: str = "2") -> dict:
+        return experiment.resolve(experiment.parse_args(["ppo-vs-rpo", "--envs", *names, "--num-seeds", seeds]))
+
+    experiment.prepare_out(out, definition("cartpole"))
+    experiment.prepare_out(out, definition("cartpole", "gym/Pendulum-v1"), write=False)
+    assert json.loads((out / "experiment.json").read_text())["envs"] == ["cartpole"]  # written under the lock only
+    capsys.readouterr()
+    experiment.prepare_out(out, definition("cartpole", "gym/Pendulum-v1"))
+    assert "the experiment grows by gym/Pendulum-v1" in capsys.readouterr().out
+    assert json.loads((out / "experiment.json").read_text()) == definition("cartpole", "gym/Pendulum-v1")
+    experiment.prepare_out(out, definition("cartpole", "gym/Pendulum-v1"))  # continued: nothing new
+    assert capsys.readouterr().out == ""
+    with pytest.raises(UsageError, match="holds the experiment of --envs cartpole gym/Pendulum-v1; give those"):
+        experiment.prepare_out(out, definition("gym/Pendulum-v1"))
+    with pytest.raises(UsageError, match=r"differs in envs, num_seeds"):
+        experiment.prepare_out(out, definition("cartpole", "gym/Pendulum-v1", "brax/ant", seeds="3"))
+
+
 @pytest.mark.parametrize("old, new", [("--seeds", "--num-seeds"), ("--timesteps", "--total-timesteps")])
 def test_the_old_flag_names_are_refused_with_the_new_one(capsys, old, new):
     assert experiment.main(["ppo-vs-rpo", "--envs", "cartpole", f"{old}=3"]) == 2
