@@ -17,20 +17,25 @@ import argparse
 import dataclasses
 import statistics
 import time
+from typing import Callable
 
 import jax
 
 jax.config.update("jax_num_cpu_devices", 2)  # before any computation
 
-from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+from jax.sharding import Mesh, PartitionSpec  # noqa: E402
 
 from phases import interleaved  # noqa: E402
 from rpo_jax import devices, envs, ppo  # noqa: E402
 from rpo_jax.config import PRESETS  # noqa: E402
 
 
-def phases_of(trainer: ppo.Trainer) -> dict:
-    """One run's phases, each a function of its training state."""
+PHASES = ("rollout", "minibatch epochs", "whole update")
+
+
+def phases_of(trainer: ppo.Trainer) -> tuple[dict, Callable]:
+    """One run's timed phases by name, each a function of its training state (the epochs' of
+    the state and a batch), and the function that makes the epochs' batch."""
 
     def rollout(state: ppo.TrainState) -> ppo.TrainState:
         env_state, obs, _ = ppo.rollout(trainer, state.params, state.env_state, state.obs, state.key)
@@ -43,7 +48,10 @@ def phases_of(trainer: ppo.Trainer) -> dict:
         traj = ppo.rollout(trainer, state.params, state.env_state, state.obs, state.key)[2]
         return ppo.make_batch(trainer, state.params, traj, state.value_stats)[0]
 
-    return {"rollout": rollout, "minibatch epochs": epochs, "whole update": lambda s: trainer.update(s)[0], "batch": batch_of}
+    def whole_update(state: ppo.TrainState) -> ppo.TrainState:
+        return trainer.update(state)[0]
+
+    return dict(zip(PHASES, (rollout, epochs, whole_update))), batch_of
 
 
 def placed(fn, num_devices: int):
@@ -63,23 +71,20 @@ def main() -> None:
     args = parser.parse_args()
     config = dataclasses.replace(PRESETS["paper"], num_envs=8, num_steps=256, rpo_alpha=0.5)
     trainer = ppo.make_trainer(dataclasses.replace(config, total_timesteps=config.batch_size), envs.make_env(args.env))
-    phases = phases_of(trainer)
-    padded = -(-args.seeds // 2) * 2
+    phases, batch_of = phases_of(trainer)
+    padded = devices.make_placement(2, False, args.seeds, config).padded_runs
     layouts = {"1 seed": (1, 1), f"{args.seeds} seeds, 1 device": (args.seeds, 1), f"{args.seeds} seeds, 2 devices": (padded, 2)}
     programs = {}
     for layout, (runs, num_devices) in layouts.items():
-        keys = jax.random.split(jax.random.PRNGKey(0), runs)
-        if num_devices > 1:
-            keys = jax.device_put(keys, NamedSharding(Mesh(jax.devices()[:2], ("d",)), PartitionSpec("d")))
-        state = placed(trainer.init, num_devices)(keys)
-        batch = placed(phases["batch"], num_devices)(state)
-        for phase in ("rollout", "minibatch epochs", "whole update"):
+        state = placed(trainer.init, num_devices)(jax.random.split(jax.random.PRNGKey(0), runs))
+        batch = placed(batch_of, num_devices)(state)
+        for phase in PHASES:
             program = placed(phases[phase], num_devices)
             inputs = (state, batch) if phase == "minibatch epochs" else (state,)
             programs[(phase, layout)] = lambda program=program, inputs=inputs: program(*inputs)
     times = interleaved(programs, args.rounds)
     print(f"{args.env}, paper preset, 8 envs x 256 steps, {args.rounds} rounds; ms, median (min)")
-    for phase in ("rollout", "minibatch epochs", "whole update"):
+    for phase in PHASES:
         one = statistics.median(times[(phase, "1 seed")])
         for layout in layouts:
             seconds = times[(phase, layout)]

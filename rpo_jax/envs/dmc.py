@@ -67,38 +67,39 @@ def pool_threads(num_envs: int) -> int:
 class DmcSimulators:
     """One envpool pool of `num_envs` copies of a task, auto-reset within the step.
 
-    A step goes through envpool's own `_send` and `_recv`, the calls under its public `send`
-    and `recv`, which rebuild the action's list and the result's named tuples at every step: on
-    a cheap task that is a third of the step (benchmarks/RESULTS.md, "The host step's own
-    overhead"). tests/test_dmc.py checks this path against the public one across an episode's
-    end, for the envpool releases that pyproject.toml allows."""
+    Steps and resets go through envpool's own `_send`, `_reset` and `_recv`, the calls under its
+    public `send`, `reset` and `recv`, which rebuild the action's list and the result's named
+    tuples at every step: on a cheap task that is a third of the step (benchmarks/RESULTS.md,
+    "The host step's own overhead"). tests/test_dmc.py checks this path against the public one
+    across an episode's end, for the envpool releases that pyproject.toml allows."""
 
     def __init__(self, task: str, num_envs: int, seed: int) -> None:
         import envpool
 
-        self.keys = [key for key, _ in TASKS[task][1]]
         self.env_ids = np.arange(num_envs)
         # envpool seeds env i with seed + i.
         self.pool = envpool.make_dm(
             envpool_task_id(task), num_envs=num_envs, num_threads=pool_threads(num_envs), seed=seed
         )
-        # The layouts of `_send`'s and `_recv`'s lists of arrays, read once.
+        # The layouts of the lists of arrays that `_send` takes and `_recv` gives, read once.
         self.action_parts = self.pool._from(np.zeros((num_envs, TASKS[task][0])), self.env_ids)
         self.action_index = len(self.action_parts) - 1  # the action comes last, after the env ids
         where = {name: index for index, name in enumerate(self.pool._state_keys)}
-        self.result_index = [where[f"obs:{key}"] for key in self.keys]
+        self.result_index = [where[f"obs:{key}"] for key, _ in TASKS[task][1]]
         self.env_id_index, self.reward_index = where["info:env_id"], where["reward"]
         self.discount_index, self.step_type_index = where["discount"], where["step_type"]
 
-    def _flatten(self, observation: Any) -> tuple[np.ndarray, np.ndarray]:
-        """(env ids, observations [n, obs]) of one envpool result, in dm_control's key order."""
-        obs = np.concatenate(
-            [np.asarray(getattr(observation, key)).reshape(len(observation.env_id), -1) for key in self.keys], axis=1
-        )
-        return np.asarray(observation.env_id), obs
+    def _received(self) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """(env ids, observations [n, obs] in dm_control's key order, all arrays) of envpool's
+        next result, in the order envpool gives it."""
+        state = self.pool._recv()
+        env_id = state[self.env_id_index]
+        obs = np.concatenate([state[index].reshape(len(env_id), -1) for index in self.result_index], axis=1)
+        return env_id, obs, state
 
     def reset(self) -> np.ndarray:
-        env_id, obs = self._flatten(self.pool.reset(self.env_ids).observation)
+        self.pool._reset(self.env_ids)
+        env_id, obs, _ = self._received()
         return obs[np.argsort(env_id)]
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -112,22 +113,21 @@ class DmcSimulators:
         self.pool._send(parts)
 
     def receive(self) -> tuple[np.ndarray, ...]:
-        state = self.pool._recv()
-        n = len(self.env_ids)
-        reached = np.concatenate([state[index].reshape(n, -1) for index in self.result_index], axis=1)
-        env_id, reward = state[self.env_id_index], state[self.reward_index]
-        discount, step_type = state[self.discount_index], state[self.step_type_index]
+        env_id, reached, state = self._received()
+        reward, discount = state[self.reward_index], state[self.discount_index]
+        step_type = state[self.step_type_index]
         if not np.array_equal(env_id, self.env_ids):  # a pool stepped whole answers in order
             order = np.argsort(env_id)
             reached, step_type, discount, reward = reached[order], step_type[order], discount[order], reward[order]
         last = step_type == 2  # dm_env.StepType.LAST
-        if not last.any():
-            return reached, reward.copy(), np.zeros_like(last), np.zeros_like(last), reached.copy()
         obs = reached.copy()
-        # Reset now rather than on envpool's next step, so the next action is taken in the
-        # new episode, as the protocol's auto-reset requires.
-        fresh_id, fresh = self._flatten(self.pool.reset(np.flatnonzero(last)).observation)
-        obs[fresh_id] = fresh
+        if last.any():
+            # Reset now rather than on envpool's next step, so the next action is taken in the
+            # new episode, as the protocol's auto-reset requires.
+            self.pool._reset(np.flatnonzero(last))
+            fresh_id, fresh, _ = self._received()
+            obs[fresh_id] = fresh
+        # A copy: envpool may reuse the array it handed out.
         return obs, reward.copy(), last & (discount == 0), last & (discount > 0), reached
 
     def close(self) -> None:

@@ -159,7 +159,7 @@ class BatchedHostEnv:
             # run, on another device): its results are thrown away, so it steps nothing, and
             # ends without an error that JAX would print at exit.
             return tuple(np.zeros((*batch, *shape.shape), shape.dtype) for shape in self.step_shapes)
-        if not batch:
+        if not batch:  # one run, not vmapped: its pool's outputs are the callback's as they are
             return self.pools[int(handle)].step(action)
         pools = [self.pools[int(h)] for h in handle.reshape(-1)]
         results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
