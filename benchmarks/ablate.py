@@ -12,8 +12,9 @@ finiteness diagnostics`: the update as the command line runs it, counting non-fi
 unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' first layers one
 matmul, their second layers one batched matmul); measured: `no approx_kl, no clip fraction` and
 `no loss metrics` (the logged metrics of every gradient step left out); tried: `gradient over
-chunks of N samples` (each minibatch's gradient averaged over cache-sized chunks). Each variant is its own compiled whole update,
-called on the state after one update.
+chunks of N samples` (each minibatch's gradient averaged over cache-sized chunks); `shuffled by
+jax.random.permutation`: the epochs' shuffle as it was, before `ppo.shuffled_indices`. Each
+variant is its own compiled whole update, called on the state after one update.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def minibatch_step(trainer: Any, hparams: Any) -> Callable[..., Any]:
 def shuffled_minibatches(config: Any, batch: Any, key: jax.Array) -> tuple[Any, jax.Array]:
     """One epoch's minibatches [num_minibatches, B / num_minibatches, ...] and their loss keys."""
     permute_key, loss_key = jax.random.split(key)
-    permutation = jax.random.permutation(permute_key, batch.obs.shape[0])
+    permutation = ppo.shuffled_indices(permute_key, batch.obs.shape[0])
     minibatches = jax.tree.map(lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]), batch)
     return minibatches, jax.random.split(loss_key, config.num_minibatches)
 
@@ -193,6 +194,7 @@ VARIANTS = {
     "no loss metrics": patched(ppo, "ppo_loss", loss_reporting(())),
     "gradient over chunks of 1024 samples": patched(ppo, "gradient_step", gradient_over_chunks(1024)),
     "gradient over chunks of 2048 samples": patched(ppo, "gradient_step", gradient_over_chunks(2048)),
+    "shuffled by jax.random.permutation": patched(ppo, "shuffled_indices", jax.random.permutation),
 }
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import itertools
 import sys
 
 import jax
@@ -210,6 +212,46 @@ def test_policy_log_prob_and_entropy_match_closed_form_and_scipy(log_scale_shape
     np.testing.assert_allclose(entropy, closed_entropy, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(log_prob, scipy.stats.norm.logpdf(actions, mu, sigma).sum(-1), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(entropy, scipy.stats.norm.entropy(mu, sigma).sum(-1), rtol=1e-5, atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# The epochs' shuffle
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 64, 1000, 2048, 2049, 131072])
+def test_shuffled_indices_is_a_permutation_drawn_from_the_key(n):
+    drawn = np.asarray(ppo.shuffled_indices(jax.random.PRNGKey(0), n))
+    assert drawn.dtype == np.int32
+    np.testing.assert_array_equal(np.sort(drawn), np.arange(n))
+    np.testing.assert_array_equal(drawn, ppo.shuffled_indices(jax.random.PRNGKey(0), n))
+    if n > 3:
+        assert not np.array_equal(drawn, ppo.shuffled_indices(jax.random.PRNGKey(1), n))
+
+
+def one_round_of_two_random_bits(key, n):
+    """A shuffle with too few random bits: indices whose bits tie keep their order."""
+    index_bits = (n - 1).bit_length()
+    packed = (jax.random.bits(key, (n,), jnp.uint32) >> 30 << index_bits) | jnp.arange(n, dtype=jnp.uint32)
+    return (jax.lax.sort(packed) & ((1 << index_bits) - 1)).astype(jnp.int32)
+
+
+def order_uniformity(shuffle, n, watched, draws=2400):
+    """The p-value of a chi-square test that the `watched` first indices take every relative
+    order in the shuffled output equally often, over `draws` keys."""
+    keys = jax.random.split(jax.random.PRNGKey(7), draws)
+    shuffled = np.asarray(jax.jit(jax.vmap(shuffle, in_axes=(0, None)), static_argnums=1)(keys, n))
+    positions = np.argsort(shuffled, axis=1)[:, :watched]  # where each watched index landed
+    seen = collections.Counter(map(tuple, np.argsort(positions, axis=1)))
+    return scipy.stats.chisquare([seen[order] for order in itertools.permutations(range(watched))]).pvalue
+
+
+@pytest.mark.parametrize("n, watched", [(5, 5), (2048, 4), (4097, 4)])  # 1, 2 and 3 rounds of sorting
+def test_shuffled_indices_draws_every_order_equally_often(n, watched):
+    assert order_uniformity(ppo.shuffled_indices, n, watched) > 1e-3
+
+
+def test_the_uniformity_check_rejects_a_shuffle_with_too_few_random_bits():
+    assert order_uniformity(one_round_of_two_random_bits, 2048, 4) < 1e-6
 
 
 def test_perturb_location_is_uniform_in_plus_minus_alpha_and_key_dependent():

@@ -12,7 +12,8 @@ with every update:
 
 A change of what is computed records new references and says why here: auto-reset from a pool of
 starts drawn once per rollout (`envs.VectorEnv`); the trainer's environments starting at the first
-rollout's draw (`VectorEnv(defer_start=True)`). A change of how it is compiled or of the
+rollout's draw (`VectorEnv(defer_start=True)`); the epochs' shuffle drawn by `ppo.shuffled_indices`
+in place of `jax.random.permutation` (another uniform permutation, drawn faster). A change of how it is compiled or of the
 simulator records new digests only: XLA's older fusion emitters in the suite's flags (jaxlib 0.10),
 mujoco 4.0.1. Recording: `python tests/test_reference_run.py`
 writes tests/data/reference_two_updates.npz and prints this machine's fingerprint and digests
@@ -58,14 +59,14 @@ RECORDED = {
     # AMD EPYC with AVX2, no AVX-512 (2 cores, KVM), Python 3.11.7, jax/jaxlib 0.10.2, numpy 2.4.6, mujoco 4.0.1,
     # with the suite's XLA_FLAGS (tests/conftest.py), XLA's older fusion emitters among them
     "63ef25e2f2fbaef2": (
-        "ba2513a4b0fb6c0fead08e031725bd7c932e21252aa35b4a0b4a7a672aa42c05",
-        "e8f5128920b52bcf4c74febc7167af9b519e607bb807204fd1f5a621326eacaf",
+        "c7111c5e512b681f3fe168904071b57cf4b510331171d430b892f73d344acb57",
+        "72e5392ffb1cb550e844b1a69b1980a4493e43d82576bb9e593abedc3bdfa134",
     ),
     # the same machine and the suite's flags (no older emitters there), Python 3.13.0, jax/jaxlib 0.12.0.1,
     # numpy 2.5.5, mujoco 4.0.1
     "b5b8246593a45653": (
-        "1e80e786ab2ba314803b5493e57aa6b160ed5eed5ad4693302a630c962b1ee90",
-        "19cea350f042acee563789e11905fd117173e1615d8caeaf61ee163e15ad5a39",
+        "6793879d4cbaa85addf3f1bca982405ae4ffad4b0e2367e75bd363e925016bd3",
+        "99057fcf9fe40b57380878b87ffa4de42f32df9502dd506f99d9437fce0626f5",
     ),
 }
 
