@@ -330,12 +330,13 @@ def gradient_step(
 def shuffled_indices(key: jax.Array, n: int) -> jax.Array:
     """A uniformly random permutation of range(n), int32 [n]: the order `minibatch_epochs`
     takes the batch in. `jax.random.permutation` draws one by sorting random keys with the
-    indices as values, and XLA's CPU backend sorts one array of integers 2-5 times faster than
-    keys with values (`benchmarks/shuffle.py`): with it, the epochs of compare.py's 4096
-    environments spent a third of their time sorting. So each round sorts random bits packed
-    above the indices' bits (every packed key distinct) and reads the order from the low bits. Over the rounds the random bits
-    add up to 3 x log2(n), as jax's rounds do, so ties, which keep the order of the round
-    before, have a chance below 1/n. (Rounds grow with n: 4 at 2**17 samples, 11 at 2**25.)"""
+    indices as values; XLA's CPU backend sorts one array of integers 2-5 times faster than keys
+    with values (`benchmarks/shuffle.py`), and with `jax.random.permutation` the epochs of
+    compare.py's 4096 environments spent a third of their time sorting. So each round sorts
+    random bits packed above the indices' bits (every packed key distinct) and reads the order
+    from the low bits. Over the rounds the random bits add up to 3 x log2(n), as jax's rounds
+    do, so ties, which keep the previous round's order, have a chance below 1/n. Rounds grow
+    with n: 2 at 2**11 samples, 4 at 2**17, 11 at 2**25."""
     index_bits = max(1, (n - 1).bit_length())
     random_bits = 32 - index_bits
     positions = jnp.arange(n, dtype=jnp.uint32)
