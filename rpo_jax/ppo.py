@@ -330,8 +330,8 @@ def gradient_step(
 def shuffled_indices(key: jax.Array, n: int) -> jax.Array:
     """A uniformly random permutation of range(n), int32 [n]: the order `minibatch_epochs`
     takes the batch in. `jax.random.permutation` draws one by sorting random keys with the
-    indices as values; XLA's CPU backend sorts one array of integers 2-5 times faster than keys
-    with values (`benchmarks/shuffle.py`), and with `jax.random.permutation` the epochs of
+    indices as values; XLA's CPU backend sorts one array of integers up to 6 times faster than
+    keys with values (`benchmarks/shuffle.py`), and with `jax.random.permutation` the epochs of
     compare.py's 4096 environments spent a third of their time sorting. So each round sorts
     random bits packed above the indices' bits (every packed key distinct) and reads the order
     from the low bits. Over the rounds the random bits add up to 3 x log2(n), as jax's rounds
