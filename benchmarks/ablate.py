@@ -2,9 +2,7 @@
 
     python benchmarks/ablate.py --num-envs 256 1024 --rounds 7
 
-compare.py's work at each size. `current`: the update as it is; `gather every step`: the
-auto-reset as it was, gathering every environment's state from the pool of starts and selecting
-it at every step (`VectorEnv.step` before the `lax.cond`); `batch carried`: the minibatch epochs
+compare.py's work at each size. `current`: the update as it is; `batch carried`: the minibatch epochs
 as they were, carrying the batch through the epochs' scan instead of closing over it; `with the
 finiteness diagnostics`: the update as the command line runs it, counting non-finite numbers;
 `perturbation drawn`: PPO as it was, drawing RPO's noise of half-width 0 in every gradient step
@@ -13,7 +11,8 @@ unrolled` (the epoch's scan unrolled), `actor and critic fused` (both networks' 
 matmul, their second layers one batched matmul); measured: `no approx_kl, no clip fraction` and
 `no loss metrics` (the logged metrics of every gradient step left out); tried: `gradient over
 chunks of N samples` (each minibatch's gradient averaged over cache-sized chunks); `shuffled by
-jax.random.permutation`: the epochs' shuffle as it was, before `ppo.shuffled_indices`. Each
+jax.random.permutation`: the epochs' shuffle as it was, before `ppo.shuffled_indices`; tried: `GAE
+unrolled by 32` (32 steps of the advantages' recursion an iteration of its loop, `loss.GAE_UNROLL`). Each
 variant is its own compiled whole update, called on the state after one update.
 """
 
@@ -33,18 +32,7 @@ import optax
 from compare import ENV, NUM_STEPS, rpo_config
 from phases import interleaved
 from rpo_jax import envs, loss, ppo
-from rpo_jax.envs import wrappers
 from rpo_jax.networks import ACTIVATIONS
-
-
-def step_gathering_every_step(self: Any, state: Any, action: jax.Array) -> Any:
-    envs_state, ts = jax.vmap(self.env.step)(state.envs, action)
-    done = ts.terminated | ts.truncated
-    taken = (state.next_start + jnp.cumsum(done) - 1) % self.num_envs
-    envs_state = wrappers.select(done, jax.tree.map(lambda pool: pool[taken], state.starts), envs_state)
-    obs = jnp.where(done[:, None], state.start_obs[taken], ts.obs)
-    next_start = state.next_start + done.sum(dtype=jnp.int32)
-    return state.replace(envs=envs_state, next_start=next_start), ts.replace(obs=obs, final_obs=ts.obs)
 
 
 def minibatch_step(trainer: Any, hparams: Any) -> Callable[..., Any]:
@@ -185,7 +173,6 @@ def patched(owner: Any, name: str, value: Any) -> Callable[[], Callable[[], None
 
 VARIANTS = {
     "current": None,
-    "gather every step": patched(wrappers.VectorEnv, "step", step_gathering_every_step),
     "batch carried": patched(ppo, "minibatch_epochs", epochs_carrying_batch),
     "minibatches unrolled by 2": patched(ppo, "minibatch_epochs", epochs_unrolled(2)),
     "all minibatches unrolled": patched(ppo, "minibatch_epochs", epochs_unrolled(True)),
@@ -195,6 +182,7 @@ VARIANTS = {
     "gradient over chunks of 1024 samples": patched(ppo, "gradient_step", gradient_over_chunks(1024)),
     "gradient over chunks of 2048 samples": patched(ppo, "gradient_step", gradient_over_chunks(2048)),
     "shuffled by jax.random.permutation": patched(ppo, "shuffled_indices", jax.random.permutation),
+    "GAE unrolled by 32": patched(loss, "GAE_UNROLL", 32),
 }
 
 

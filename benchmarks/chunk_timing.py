@@ -2,7 +2,7 @@
 against the host's work between chunks, on compare.py's CLI command (1M steps). CHUNKS=N in the
 environment asks for about N chunks instead of the runner's 50.
 
-    PYTHONPATH=.. python chunk_timing.py 256 /tmp/run          # num_envs, a new --out
+    PYTHONPATH=.. python chunk_timing.py 256 /tmp/run          # num_envs, a new --out[, timesteps]
     CHUNKS=8 PYTHONPATH=.. python chunk_timing.py 256 /tmp/run2
 """
 
@@ -44,12 +44,13 @@ def timed_chunks(times: list[float]) -> None:
 
 def main() -> None:
     num_envs, out = sys.argv[1], sys.argv[2]
+    timesteps = int(sys.argv[3]) if len(sys.argv) > 3 else TIMESTEPS
     times: list[float] = []
     timed_chunks(times)
     if os.environ.get("CHUNKS"):
         chunk_length = runner.chunk_length
         runner.chunk_length = lambda n, target_chunks=50, at_most=None: chunk_length(n, int(os.environ["CHUNKS"]), at_most)
-    train.main([*cli_flags(int(num_envs), TIMESTEPS), "--out", out])
+    train.main([*cli_flags(int(num_envs), timesteps), "--out", out])
     summary = json.loads((Path(out) / "summary.json").read_text())
     host = summary["train_seconds"] - sum(times)
     print(

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 
 from rpo_jax import ppo
+from rpo_jax.config import SWEEPABLE
 from rpo_jax.plan import RunPlan
 from rpo_jax.scores import sample_std, tail_mean
 
@@ -69,6 +70,20 @@ def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple
     offset = int(np.argmax(bad.any(axis=0)))
     run = int(np.argmax(bad[:, offset]))
     return offset, run, [name for name, flags in found.items() if flags[run, offset]]
+
+
+def divergence_message(
+    plan: RunPlan, runs: list[dict[str, Any]], first_update: int, nonfinite: tuple[int, int, list[str]], last_checkpoint: int
+) -> str:  # fmt: skip
+    """The one-line error of a run that met a non-finite number (`first_nonfinite`'s finding) in the
+    chunk after `first_update`."""
+    offset, run, quantities = nonfinite
+    hparams = ", ".join(f"{name}={runs[run]['hparams'][name]:g}" for name in SWEEPABLE)
+    kept = f"the last checkpoint (update {last_checkpoint}) is finite and kept" if last_checkpoint else "no checkpoint written"
+    return (
+        f"training diverged: non-finite {', '.join(quantities)} at update {first_update + offset + 1} in run {run} "
+        f"(seed {runs[run]['seed']}, {hparams}); stopped before writing it, {kept}"
+    )
 
 
 # The running statistics of ppo.running_statistics, as a divergence names them.

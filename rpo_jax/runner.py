@@ -33,7 +33,7 @@ from rpo_jax.devices import is_primary
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
 from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label, training_record
 from rpo_jax.policy import params_bytes
-from rpo_jax.records import first_nonfinite, logged_rows, progress_metrics, record_returns, summarise
+from rpo_jax.records import divergence_message, first_nonfinite, logged_rows, progress_metrics, record_returns, summarise
 from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
 
 
@@ -317,6 +317,19 @@ def after_chunk(
     return eval_returns, videos
 
 
+def state_read_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint_due: bool) -> bool:
+    """Whether an evaluation, a video, a population step or a checkpoint falls due after the
+    chunk of `first_update + 1` to `first_update + chunk`: each reads the state, and a
+    population step changes it."""
+    chunk = compiled.chunk
+    return (
+        checkpoint_due
+        or (compiled.run_eval is not None and falls_due(plan, plan.eval_updates, first_update, chunk))
+        or (bool(compiled.capture) and falls_due(plan, plan.video_updates, first_update, chunk))
+        or (bool(compiled.evolve) and population.step_due(plan, first_update, chunk))
+    )
+
+
 def falls_due(plan: RunPlan, every: int | None, first_update: int, chunk: int) -> bool:
     """Whether a multiple of `every` updates, or the last update, falls in the chunk after `first_update`."""
     done = first_update + chunk
@@ -356,12 +369,20 @@ def train_chunks(
     trained_before = clock.seconds["train_seconds"]  # steps/s counts this process's steps and seconds
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
+        pending = compiled.run_chunk(state)
         for first_update in range(record["update"], config.num_updates, chunk):
-            state, (metrics, diagnostics) = compiled.run_chunk(state)
-            metrics, diagnostics = compiled.placement.real_runs((metrics, diagnostics))
+            state, outputs = pending
+            updates_done = first_update + chunk
+            checkpoint_due = bool(checkpointer) and last_checkpoint + checkpoint_updates <= updates_done < config.num_updates
+            # The next chunk is queued before this one's outputs are read, so the host's work
+            # between chunks (the non-finite check, the rows, metrics.jsonl) runs while the device
+            # trains; if this chunk went non-finite, the queued one's outputs are never read. Not
+            # when something due here reads or changes the state: its time stays its own.
+            queued = updates_done < config.num_updates and not state_read_after(plan, compiled, first_update, checkpoint_due)
+            pending = compiled.run_chunk(state) if queued else None
+            metrics, diagnostics = compiled.placement.real_runs(outputs)
             nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
             clock.lap("train_seconds")
-            updates_done = first_update + chunk
             steps_done = updates_done * config.batch_size
             sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
             if nonfinite:
@@ -374,15 +395,15 @@ def train_chunks(
             if metrics_file:
                 write_rows(metrics_file, rows)
             record_returns(rows, logged_returns)
-            track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns))
+            track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
             if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
                 scored = (metrics.episode_return, logged_returns["eval_return"])
                 state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
-            if checkpointer and updates_done < config.num_updates and updates_done - last_checkpoint >= checkpoint_updates:
-                clock.lap("train_seconds")
-                save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock.seconds)
-                clock.lap("checkpoint_seconds")
+            if checkpoint_due:
+                save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock)
                 last_checkpoint = updates_done
+            if pending is None and updates_done < config.num_updates:
+                pending = compiled.run_chunk(state)
     if checkpointer:
         checkpointer.close()
     clock.lap("train_seconds")
@@ -391,9 +412,13 @@ def train_chunks(
 
 def track_chunk(
     clock: Clock, sinks: Sequence[Sink], rows: list[dict[str, Any]], progress: ProgressFn | None, steps: int,
-    metrics: dict[str, float],
+    metrics: dict[str, float], queued: Any = None,
 ) -> None:  # fmt: skip
-    """Writes a chunk's rows to the sinks and calls `progress` with its metrics, timed apart from training."""
+    """Writes a chunk's rows to the sinks and calls `progress` with its metrics, timed apart from
+    training. The `queued` chunk's outputs are waited for first, counted as training: the sinks
+    then run while the device waits, so their time is tracking's, and steps/s, counted over
+    training's time, neither gains by a slow sink nor loses by it."""
+    jax.block_until_ready(queued)
     clock.lap("train_seconds")
     for sink in sinks:
         sink.write(rows)
@@ -406,28 +431,16 @@ def track_chunk(
 
 def save_checkpoint(
     plan: RunPlan, compiled: Compiled, checkpointer: Checkpointer, state: ppo.TrainState, update: int,
-    metrics_file: Any, seconds: dict[str, float],
+    metrics_file: Any, clock: Clock,
 ) -> None:  # fmt: skip
     """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
-    seconds so far and what the run was trained with."""
+    seconds so far and what the run was trained with; its own seconds counted as checkpointing."""
+    clock.lap("train_seconds")
     metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
     metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
     checkpointer.save(
         update, compiled.placement.checkpoint_state(state),
-        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **seconds,
+        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **clock.seconds,
          "trained_with": training_record(plan)},
     )  # fmt: skip
-
-
-def divergence_message(
-    plan: RunPlan, runs: list[dict[str, Any]], first_update: int, nonfinite: tuple[int, int, list[str]], last_checkpoint: int
-) -> str:  # fmt: skip
-    offset, run, quantities = nonfinite
-    hparams = ", ".join(f"{name}={runs[run]['hparams'][name]:g}" for name in SWEEPABLE)
-    kept = f"the last checkpoint (update {last_checkpoint}) is finite and kept" if last_checkpoint else "no checkpoint written"
-    return (
-        f"training diverged: non-finite {', '.join(quantities)} at update {first_update + offset + 1} in run {run} "
-        f"(seed {runs[run]['seed']}, {hparams}); stopped before writing it, {kept}"
-    )
-
-
+    clock.lap("checkpoint_seconds")

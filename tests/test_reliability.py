@@ -209,6 +209,35 @@ def test_first_nonfinite_names_the_first_update_and_run():
     assert records.first_nonfinite(metrics, diagnostics) == (2, 1, ["parameters"])
 
 
+@pytest.mark.parametrize("checkpoint_every", [0, 5 * NUM_ENVS * NUM_STEPS])
+def test_the_next_chunk_is_queued_before_a_chunks_outputs_are_read(tmp_path, monkeypatch, checkpoint_every):
+    """The host's work between chunks overlaps the next chunk's training, except after a chunk
+    that a checkpoint (here every 5 updates, none after the last) reads the state of."""
+    calls, queued_at_check = [0], []
+    compile_runs, first_nonfinite = runner.compile_runs, runner.first_nonfinite
+
+    def counted(*args, **kwargs):
+        compiled = compile_runs(*args, **kwargs)
+
+        def run_chunk(state):
+            calls[0] += 1
+            return compiled.run_chunk(state)
+
+        return dataclasses.replace(compiled, run_chunk=run_chunk)
+
+    def checked(*args):
+        queued_at_check.append(calls[0])
+        return first_nonfinite(*args)
+
+    monkeypatch.setattr(runner, "compile_runs", counted)
+    monkeypatch.setattr(runner, "first_nonfinite", checked)
+    flags = [*TINY_FLAGS, "--checkpoint-every", str(checkpoint_every), "--out", str(tmp_path / "run")]
+    assert train.main(flags) == 0 and calls[0] == UPDATES  # one update a chunk; none run twice or past the end
+    checkpointed = set(range(5, UPDATES, 5)) if checkpoint_every else set()
+    ahead = [update + (update < UPDATES and update not in checkpointed) for update in range(1, UPDATES + 1)]
+    assert queued_at_check == ahead
+
+
 # --------------------------------------------------------------------------------------------
 # One writer per run directory
 

@@ -227,21 +227,21 @@ def test_a_finished_run_edited_in_what_acting_does_not_read_acts_as_before(finis
 
 
 def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out(tmp_path, monkeypatch):
-    # Evaluations and checkpoints made slow (2 s and 1 s each) against a training of 20 tiny
-    # updates that takes well under a second: counted in train_seconds, they would dominate it.
-    def slow(name, seconds):
-        function = getattr(runner, name)
+    # Evaluations and checkpoints' writes made slow (2 s and 1 s each) against a training of 20
+    # tiny updates that takes well under a second: counted in train_seconds, they would dominate it.
+    def slow(owner, name, seconds):
+        function = getattr(owner, name)
 
         def slowed(*args, **kwargs):
             result = function(*args, **kwargs)
-            if result is not None or name == "save_checkpoint":  # an evaluation was due, or a checkpoint
+            if result is not None or name == "save":  # an evaluation was due, or a checkpoint
                 time.sleep(seconds)
             return result
 
-        monkeypatch.setattr(runner, name, slowed)
+        monkeypatch.setattr(owner, name, slowed)
 
-    slow("evaluate_after_chunk", 2.0)
-    slow("save_checkpoint", 1.0)
+    slow(runner, "evaluate_after_chunk", 2.0)
+    slow(runner.Checkpointer, "save", 1.0)
     out = tmp_path / "run"
     every = NUM_ENVS * NUM_STEPS
     flags = [*TINY_FLAGS, "--eval-every", str(10 * every), "--eval-episodes", "2", "--checkpoint-every", str(5 * every)]
