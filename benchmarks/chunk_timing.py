@@ -1,6 +1,8 @@
 """Where the command line's train_seconds go: each chunk's time until its outputs are ready,
 against the host's work between chunks, on compare.py's CLI command (1M steps). CHUNKS=N in the
-environment asks for about N chunks instead of the runner's 50.
+environment asks for about N chunks instead of the runner's 50. Each chunk is waited for, so the
+runner's queueing of the next chunk before the host's work is undone here: the host's work is
+the time it would cost with nothing overlapping it.
 
     PYTHONPATH=.. python chunk_timing.py 256 /tmp/run          # num_envs, a new --out[, timesteps]
     CHUNKS=8 PYTHONPATH=.. python chunk_timing.py 256 /tmp/run2

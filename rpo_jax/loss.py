@@ -23,11 +23,8 @@ from rpo_jax.networks import Actor, Critic, perturb_location, policy_distributio
 jax.tree_util.register_dataclass(Hyperparams, data_fields=list(SWEEPABLE), meta_fields=[])
 
 
-# Steps of the GAE recursion per iteration of its loop. The recursion is elementwise over the
-# environments, so XLA can fuse unrolled steps into one kernel, which may pay on a GPU, where
-# values and GAE took 2.0 ms of an update of 18.8 ms (benchmarks/phases.py, issue 32). Unrolled,
-# the CPU's program rounds differently (the reference digests change) and runs no faster, so it
-# stays at 1 until a GPU shows the gain (benchmarks/ablate.py, "GAE unrolled by 32").
+# Steps of the GAE recursion per iteration of its loop. More let XLA fuse steps; on the CPU that
+# is no faster and rounds otherwise (benchmarks/RESULTS.md, issue 32); untried on a GPU.
 GAE_UNROLL = 1
 
 

@@ -91,6 +91,11 @@ class RunPlan:
         """Updates between evaluations; None when evaluation is off."""
         return max(1, self.eval_every // self.config.batch_size) if self.eval_every else None
 
+    def falls_due(self, every: int | None, first_update: int, chunk: int) -> bool:
+        """Whether a multiple of `every` updates, or the last update, falls in the chunk after `first_update`."""
+        done = first_update + chunk
+        return done // every != first_update // every or done == self.config.num_updates
+
     @property
     def video_updates(self) -> int | None:
         """Updates between videos; None when they are off."""

@@ -295,7 +295,7 @@ def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any])
 def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int) -> np.ndarray | None:
     """Each run's evaluation return when an evaluation falls due in the chunk that ended at
     `first_update + chunk` (and after the last update), else None."""
-    if compiled.run_eval is None or not falls_due(plan, plan.eval_updates, first_update, compiled.chunk):
+    if compiled.run_eval is None or not plan.falls_due(plan.eval_updates, first_update, compiled.chunk):
         return None
     inputs = compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state))
     _, means = compiled.run_eval(inputs, compiled.eval_keys)
@@ -310,7 +310,7 @@ def after_chunk(
     where none falls due."""
     eval_returns, videos = evaluate_after_chunk(plan, compiled, state, first_update), None
     clock.lap("eval_seconds")
-    if compiled.capture and falls_due(plan, plan.video_updates, first_update, compiled.chunk):
+    if compiled.capture and plan.falls_due(plan.video_updates, first_update, compiled.chunk):
         inputs = jax.device_get(compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state)))
         videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
     clock.lap("video_seconds")
@@ -318,22 +318,15 @@ def after_chunk(
 
 
 def state_read_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint_due: bool) -> bool:
-    """Whether an evaluation, a video, a population step or a checkpoint falls due after the
-    chunk of `first_update + 1` to `first_update + chunk`: each reads the state, and a
-    population step changes it."""
+    """Whether an evaluation, a video, a population step or a checkpoint, which read the state (a
+    population step changes it), falls due after the chunk of `first_update + 1` to `+ chunk`."""
     chunk = compiled.chunk
     return (
         checkpoint_due
-        or (compiled.run_eval is not None and falls_due(plan, plan.eval_updates, first_update, chunk))
-        or (bool(compiled.capture) and falls_due(plan, plan.video_updates, first_update, chunk))
+        or (compiled.run_eval is not None and plan.falls_due(plan.eval_updates, first_update, chunk))
+        or (bool(compiled.capture) and plan.falls_due(plan.video_updates, first_update, chunk))
         or (bool(compiled.evolve) and population.step_due(plan, first_update, chunk))
     )
-
-
-def falls_due(plan: RunPlan, every: int | None, first_update: int, chunk: int) -> bool:
-    """Whether a multiple of `every` updates, or the last update, falls in the chunk after `first_update`."""
-    done = first_update + chunk
-    return done // every != first_update // every or done == plan.config.num_updates
 
 
 class Clock:
@@ -364,61 +357,71 @@ def train_chunks(
     config, record, chunk, state = plan.config, compiled.record, compiled.chunk, compiled.state
     checkpoint_updates = math.ceil(plan.checkpoint_every / config.batch_size) if plan.checkpoint_every else 0
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
-    clock = Clock(record)
-    steps_before, last_checkpoint = record["update"] * config.batch_size, record["update"]
-    trained_before = clock.seconds["train_seconds"]  # steps/s counts this process's steps and seconds
+    clock, last_checkpoint = Clock(record), record["update"]
+    # steps/s counts this process's steps and seconds
+    steps_before, trained_before = record["update"] * config.batch_size, clock.seconds["train_seconds"]
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
-        pending = compiled.run_chunk(state)
-        for first_update in range(record["update"], config.num_updates, chunk):
-            state, outputs = pending
-            updates_done = first_update + chunk
-            checkpoint_due = bool(checkpointer) and last_checkpoint + checkpoint_updates <= updates_done < config.num_updates
-            # The next chunk is queued before this one's outputs are read, so the host's work
-            # between chunks (the non-finite check, the rows, metrics.jsonl) runs while the device
-            # trains; if this chunk went non-finite, the queued one's outputs are never read. Not
-            # when something due here reads or changes the state: its time stays its own.
-            queued = updates_done < config.num_updates and not state_read_after(plan, compiled, first_update, checkpoint_due)
-            pending = compiled.run_chunk(state) if queued else None
-            metrics, diagnostics = compiled.placement.real_runs(outputs)
-            nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
-            clock.lap("train_seconds")
-            steps_done = updates_done * config.batch_size
-            sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
-            if nonfinite:
-                # The updates before it are finite and logged; it and the state after it are not kept.
+        pending = compiled.run_chunk(state) if record["update"] < config.num_updates else None
+        try:
+            for first_update in range(record["update"], config.num_updates, chunk):
+                (state, outputs), updates_done = pending, first_update + chunk
+                checkpoint_due = bool(checkpointer) and last_checkpoint + checkpoint_updates <= updates_done < config.num_updates
+                # The next chunk is queued before this one's outputs are read, so the host's work (the
+                # non-finite check, the rows, metrics.jsonl) runs while the device trains; after a
+                # non-finite chunk, the queued one's outputs are never read. Not before what reads the state.
+                queued = updates_done < config.num_updates and not state_read_after(plan, compiled, first_update, checkpoint_due)
+                pending = compiled.run_chunk(state) if queued else None
+                metrics, diagnostics = compiled.placement.real_runs(outputs)
+                nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
+                clock.lap("train_seconds")
+                steps_done = updates_done * config.batch_size
+                sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
+                if nonfinite:
+                    stop_diverged(plan, runs, metrics, first_update, nonfinite, sps, last_checkpoint, metrics_file)
+                eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock)
+                rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
                 if metrics_file:
-                    write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
-                raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
-            eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock)
-            rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
-            if metrics_file:
-                write_rows(metrics_file, rows)
-            record_returns(rows, logged_returns)
-            track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
-            if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
-                scored = (metrics.episode_return, logged_returns["eval_return"])
-                state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
-            if checkpoint_due:
-                save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock)
-                last_checkpoint = updates_done
-            if pending is None and updates_done < config.num_updates:
-                pending = compiled.run_chunk(state)
+                    write_rows(metrics_file, rows)
+                record_returns(rows, logged_returns)
+                track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
+                if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
+                    scored = (metrics.episode_return, logged_returns["eval_return"])
+                    state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
+                if checkpoint_due:
+                    save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock)
+                    last_checkpoint = updates_done
+                if pending is None and updates_done < config.num_updates:
+                    pending = compiled.run_chunk(state)
+        finally:
+            # A chunk still in flight (after a divergence or an interrupt) ends before the
+            # simulators it steps are closed.
+            jax.block_until_ready(pending)
     if checkpointer:
         checkpointer.close()
     clock.lap("train_seconds")
     return state, clock.seconds
 
 
+def stop_diverged(
+    plan: RunPlan, runs: list[dict[str, Any]], metrics: ppo.Metrics, first_update: int, nonfinite: tuple[int, int, list[str]],
+    sps: float, last_checkpoint: int, metrics_file: Any,
+) -> None:  # fmt: skip
+    """Logs the chunk's finite updates, those before `nonfinite`'s, and raises Diverged: the rest are not kept."""
+    if metrics_file:
+        write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
+    raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
+
+
 def track_chunk(
     clock: Clock, sinks: Sequence[Sink], rows: list[dict[str, Any]], progress: ProgressFn | None, steps: int,
-    metrics: dict[str, float], queued: Any = None,
+    metrics: dict[str, float], pending: Any = None,
 ) -> None:  # fmt: skip
     """Writes a chunk's rows to the sinks and calls `progress` with its metrics, timed apart from
-    training. The `queued` chunk's outputs are waited for first, counted as training: the sinks
+    training. The queued chunk's outputs (`pending`) are waited for first, counted as training: the sinks
     then run while the device waits, so their time is tracking's, and steps/s, counted over
     training's time, neither gains by a slow sink nor loses by it."""
-    jax.block_until_ready(queued)
+    jax.block_until_ready(pending)
     clock.lap("train_seconds")
     for sink in sinks:
         sink.write(rows)
