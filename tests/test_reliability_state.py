@@ -275,6 +275,28 @@ def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
     assert min(row["sps"] for row in rows) > summary["total_timesteps"] / 3.0
 
 
+def test_the_sinks_write_after_the_queued_chunk_has_ended(tmp_path, monkeypatch):
+    # Writing while the next chunk trains would take the sinks' time out of training's, and
+    # steps/s would count the chunk's steps over less than it took.
+    from rpo_jax.sinks import TensorBoardSink
+
+    events, write, wait = [], TensorBoardSink.write, runner.jax.block_until_ready
+
+    def waited(tree):
+        events.append("wait" if tree is not None else "nothing to wait for")
+        return wait(tree)
+
+    def noted_write(self, rows):
+        events.append("write" if rows else "opened")  # `open` writes a new run's kept rows: none
+        write(self, rows)
+
+    monkeypatch.setattr(runner.jax, "block_until_ready", waited)
+    monkeypatch.setattr(TensorBoardSink, "write", noted_write)
+    assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "run")]) == 0
+    before_writes = [events[i - 1] for i, event in enumerate(events) if event == "write"]
+    assert before_writes == ["wait"] * 19 + ["nothing to wait for"]  # 20 chunks; none queued after the last
+
+
 # --------------------------------------------------------------------------------------------
 # Item 6: a resume on another layout is refused unless asked for
 
