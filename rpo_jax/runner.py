@@ -21,7 +21,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, Protocol, Sequence
+from typing import Any, Callable, Iterator, NamedTuple, Protocol, Sequence
 
 import jax
 import numpy as np
@@ -292,40 +292,43 @@ def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any])
     return plan.run_dir.metrics_problem(record.get("metrics_bytes"), record.get("metrics_sha256"), update)
 
 
-def evaluate_after_chunk(plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int) -> np.ndarray | None:
-    """Each run's evaluation return when an evaluation falls due in the chunk that ended at
-    `first_update + chunk` (and after the last update), else None."""
-    if compiled.run_eval is None or not plan.falls_due(plan.eval_updates, first_update, compiled.chunk):
-        return None
+def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
+    """Each run's evaluation return on `state`."""
     inputs = compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state))
     _, means = compiled.run_eval(inputs, compiled.eval_keys)
     return np.asarray(jax.device_get(means))
 
 
 def after_chunk(
-    plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int, clock: Clock
+    plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int, clock: Clock, due: Due
 ) -> tuple[np.ndarray | None, list[str] | None]:  # fmt: skip
-    """The evaluation returns and the videos' paths, one per run, that fall due in the chunk
-    that ended at `first_update + chunk` (and after the last update), each timed apart; None
-    where none falls due."""
-    eval_returns, videos = evaluate_after_chunk(plan, compiled, state, first_update), None
+    """The evaluation returns and the videos' paths, one per run, that are `due` after the chunk
+    that ended at `first_update + chunk`, each timed apart; None where none is due."""
+    eval_returns, videos = evaluate_after_chunk(compiled, state) if due.eval else None, None
     clock.lap("eval_seconds")
-    if compiled.capture and plan.falls_due(plan.video_updates, first_update, compiled.chunk):
+    if due.video:
         inputs = jax.device_get(compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state)))
         videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
     clock.lap("video_seconds")
     return eval_returns, videos
 
 
-def state_read_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint_due: bool) -> bool:
-    """Whether an evaluation, a video, a population step or a checkpoint, which read the state (a
-    population step changes it), falls due after the chunk of `first_update + 1` to `+ chunk`."""
+class Due(NamedTuple):
+    """What falls due after a chunk; each reads the state, and a population step changes it."""
+    eval: bool
+    video: bool
+    evolve: bool
+    checkpoint: bool
+
+
+def due_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint: bool) -> Due:
+    """What falls due after the chunk of `first_update + 1` to `first_update + chunk`."""
     chunk = compiled.chunk
-    return (
-        checkpoint_due
-        or (compiled.run_eval is not None and plan.falls_due(plan.eval_updates, first_update, chunk))
-        or (bool(compiled.capture) and plan.falls_due(plan.video_updates, first_update, chunk))
-        or (bool(compiled.evolve) and population.step_due(plan, first_update, chunk))
+    return Due(
+        compiled.run_eval is not None and plan.falls_due(plan.eval_updates, first_update, chunk),
+        bool(compiled.capture) and plan.falls_due(plan.video_updates, first_update, chunk),
+        bool(compiled.evolve) and population.step_due(plan, first_update, chunk),
+        checkpoint,
     )
 
 
@@ -358,8 +361,7 @@ def train_chunks(
     checkpoint_updates = math.ceil(plan.checkpoint_every / config.batch_size) if plan.checkpoint_every else 0
     checkpointer = Checkpointer(plan.run_dir.checkpoints) if checkpoint_updates else None
     clock, last_checkpoint = Clock(record), record["update"]
-    # steps/s counts this process's steps and seconds
-    steps_before, trained_before = record["update"] * config.batch_size, clock.seconds["train_seconds"]
+    steps_before, trained_before = record["update"] * config.batch_size, clock.seconds["train_seconds"]  # this process's
     # Only process 0 logs (None: another process); every process computes the same rows.
     with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
         pending = compiled.run_chunk(state) if record["update"] < config.num_updates else None
@@ -367,11 +369,10 @@ def train_chunks(
             for first_update in range(record["update"], config.num_updates, chunk):
                 (state, outputs), updates_done = pending, first_update + chunk
                 checkpoint_due = bool(checkpointer) and last_checkpoint + checkpoint_updates <= updates_done < config.num_updates
-                # The next chunk is queued before this one's outputs are read, so the host's work (the
-                # non-finite check, the rows, metrics.jsonl) runs while the device trains; after a
-                # non-finite chunk, the queued one's outputs are never read. Not before what reads the state.
-                queued = updates_done < config.num_updates and not state_read_after(plan, compiled, first_update, checkpoint_due)
-                pending = compiled.run_chunk(state) if queued else None
+                # The next chunk is queued before this one's outputs are read (never, after a non-finite one), so the
+                # host's work (the non-finite check, rows, metrics.jsonl) overlaps training; not before what is due.
+                due = due_after(plan, compiled, first_update, checkpoint_due)
+                pending = compiled.run_chunk(state) if updates_done < config.num_updates and not any(due) else None
                 metrics, diagnostics = compiled.placement.real_runs(outputs)
                 nonfinite = first_nonfinite(metrics, diagnostics)  # on the host: the chunk has ended
                 clock.lap("train_seconds")
@@ -379,16 +380,16 @@ def train_chunks(
                 sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
                 if nonfinite:
                     stop_diverged(plan, runs, metrics, first_update, nonfinite, sps, last_checkpoint, metrics_file)
-                eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock)
+                eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock, due)
                 rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
                 if metrics_file:
                     write_rows(metrics_file, rows)
                 record_returns(rows, logged_returns)
                 track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
-                if compiled.evolve and population.step_due(plan, first_update, chunk):  # before the checkpoint holds it
+                if due.evolve:  # before the checkpoint holds it
                     scored = (metrics.episode_return, logged_returns["eval_return"])
                     state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
-                if checkpoint_due:
+                if due.checkpoint:
                     save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock)
                     last_checkpoint = updates_done
                 if pending is None and updates_done < config.num_updates:
@@ -418,9 +419,8 @@ def track_chunk(
     metrics: dict[str, float], pending: Any = None,
 ) -> None:  # fmt: skip
     """Writes a chunk's rows to the sinks and calls `progress` with its metrics, timed apart from
-    training. The queued chunk's outputs (`pending`) are waited for first, counted as training: the sinks
-    then run while the device waits, so their time is tracking's, and steps/s, counted over
-    training's time, neither gains by a slow sink nor loses by it."""
+    training. The queued chunk (`pending`) is waited for first, as training: the sinks then run while the
+    device waits, so their time is tracking's, and steps/s neither gains by a slow sink nor loses by it."""
     jax.block_until_ready(pending)
     clock.lap("train_seconds")
     for sink in sinks:
