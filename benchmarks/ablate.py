@@ -12,8 +12,10 @@ matmul, their second layers one batched matmul); measured: `no approx_kl, no cli
 `no loss metrics` (the logged metrics of every gradient step left out); tried: `gradient over
 chunks of N samples` (each minibatch's gradient averaged over cache-sized chunks); `shuffled by
 jax.random.permutation`: the epochs' shuffle as it was, before `ppo.shuffled_indices`; tried: `GAE
-unrolled by 32` (32 steps of the advantages' recursion an iteration of its loop, `loss.GAE_UNROLL`). Each
-variant is its own compiled whole update, called on the state after one update.
+unrolled by 32` (32 steps of the advantages' recursion an iteration of its loop, `loss.GAE_UNROLL`);
+`every final observation valued`: the critic's pass over the final observations as it was, in every
+update, without the branch on whether any episode was truncated. Each variant is its own compiled
+whole update, called on the state after one update.
 """
 
 from __future__ import annotations
@@ -131,6 +133,12 @@ def gradient_over_chunks(samples: int) -> Callable[..., Any]:
     return gradient_step
 
 
+def every_final_observation_valued(critic: Any, params: dict, traj: Any, next_values: jax.Array) -> jax.Array:
+    """The critic over every final observation, without `ppo.bootstrapped_next_values`'s `lax.cond`,
+    whose predicate a GPU hands to its host before it picks a branch."""
+    return jnp.where(traj.truncated, critic.apply(params["critic"], traj.final_obs), next_values)
+
+
 def loss_reporting(kept: tuple[str, ...]) -> Callable[..., Any]:
     """`loss.ppo_loss` whose metrics outside `kept` are zeros: XLA then drops their arithmetic
     and their writes into the epochs' outputs, which tells what the logged metrics cost."""
@@ -183,6 +191,7 @@ VARIANTS = {
     "gradient over chunks of 2048 samples": patched(ppo, "gradient_step", gradient_over_chunks(2048)),
     "shuffled by jax.random.permutation": patched(ppo, "shuffled_indices", jax.random.permutation),
     "GAE unrolled by 32": patched(loss, "GAE_UNROLL", 32),
+    "every final observation valued": patched(ppo, "bootstrapped_next_values", every_final_observation_valued),
 }
 
 

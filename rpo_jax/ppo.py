@@ -277,17 +277,12 @@ def make_batch(
     critic's targets on the scale of return statistics updated with this rollout's returns."""
     config, critic = trainer.config, trainer.critic
     # Values in large batched calls after the rollout rather than one per step. A step's next
-    # observation is the following step's observation unless its episode ended there; only a
-    # bootstrapped truncation reads the value of that final observation, so the pass over all
-    # final observations runs only in a rollout where some episode was truncated.
+    # observation is the following step's observation unless its episode ended there.
     values = critic.apply(params["critic"], traj.obs)
     last_values = critic.apply(params["critic"], traj.final_obs[-1])
     next_values = jnp.concatenate([values[1:], last_values[None]])
     if config.truncation == "bootstrap":
-        final_values = jax.lax.cond(
-            traj.truncated.any(), lambda: critic.apply(params["critic"], traj.final_obs), lambda: next_values
-        )
-        next_values = jnp.where(traj.truncated, final_values, next_values)
+        next_values = bootstrapped_next_values(critic, params, traj, next_values)
     if config.normalize_value:
         values, next_values = value_stats.unstandardize(values), value_stats.unstandardize(next_values)
     advantages, returns = compute_gae(
@@ -303,6 +298,17 @@ def make_batch(
         Batch(traj.obs, traj.action, traj.log_prob, values, advantages, returns),
     )
     return batch, value_stats
+
+
+def bootstrapped_next_values(critic: Critic, params: dict, traj: Transition, next_values: jax.Array) -> jax.Array:
+    """Next values [T, N] with each truncated step's taken from its final observation's value.
+
+    Only a bootstrapped truncation reads the value of a final observation, so the critic's pass
+    over all final observations runs only in a rollout where some episode was truncated."""
+    final_values = jax.lax.cond(
+        traj.truncated.any(), lambda: critic.apply(params["critic"], traj.final_obs), lambda: next_values
+    )
+    return jnp.where(traj.truncated, final_values, next_values)
 
 
 def gradient_step(
