@@ -8,13 +8,17 @@ The process splits the CPU into two JAX devices (`jax_num_cpu_devices`, as `trai
 of 2, as `rpo_jax.devices` pads them). For each, the rollout alone, the minibatch epochs alone
 and the whole update (rollout, batch and epochs), each compiled once and timed in interleaved
 rounds; printed as medians and as the ratio to one seed's time. Then one more rollout of each,
-with the CPU time all the process's threads spent on it.
+with the CPU time all the process's threads spent on it. And a fourth placement of the whole
+update, `split`: the trainer's `--split-epochs` (`rpo_jax.devices`), the rollout of all seeds on
+one device (one callback a step for every seed's pools), the epochs over both devices, the state
+moved between them in every update.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import statistics
 import time
 from typing import Callable
@@ -82,11 +86,15 @@ def main() -> None:
             program = placed(phases[phase], num_devices)
             inputs = (state, batch) if phase == "minibatch epochs" else (state,)
             programs[(phase, layout)] = lambda program=program, inputs=inputs: program(*inputs)
+    split = f"{args.seeds} seeds, split"
+    state = placed(trainer.init, 1)(jax.random.split(jax.random.PRNGKey(0), args.seeds))
+    placement = devices.make_placement(2, False, args.seeds, config, split_epochs=True)
+    programs[("whole update", split)] = functools.partial(placement.chunk_program(trainer, 1, state), state)
     times = interleaved(programs, args.rounds)
     print(f"{args.env}, paper preset, 8 envs x 256 steps, {args.rounds} rounds; ms, median (min)")
     for phase in PHASES:
         one = statistics.median(times[(phase, "1 seed")])
-        for layout in layouts:
+        for layout in [*layouts, split] if phase == "whole update" else layouts:
             seconds = times[(phase, layout)]
             median = statistics.median(seconds)
             print(f"{phase:<17} {layout:<20} {median * 1e3:8.1f} ({min(seconds) * 1e3:.1f})  {median / one:5.2f}x one seed")

@@ -9,6 +9,13 @@ one run's environments split across them (data parallel). Built on `jax.sharding
   are never logged, their parameters never saved, and checkpoints hold the R real runs only (so
   a run can be resumed on another number of devices). A padded device costs no more wall time
   than a full one.
+- epochs (`--split-epochs`): the R runs' rollouts and batches on the first device, where one
+  callback a step steps every run's simulators, and only their minibatch epochs split over the
+  D devices as with runs (padded the same way); the state returns to the first device after
+  every update. For host-side environments on a CPU split into devices (`--cpu-devices`): split
+  by runs, each device's program would step its own share of the simulators through callbacks
+  of its own, on the same cores as the simulators' threads, while the epochs, the update's
+  arithmetic, gain the cores. In one process only.
 - envs (`--shard-envs`): every device holds all R runs and num_envs / D of each run's
   environments; the trainer made with the device axis (`ppo.make_trainer(axis_name=AXIS)`)
   averages gradients over it and merges the normalisers' statistics, so the parameters stay
@@ -23,7 +30,7 @@ num_envs / D simulators per run, built from the key folded with its index. A dev
 callbacks run in the process that owns it, so with several processes each builds and steps
 the pools of its own devices' shares (a pool's handle means something only there).
 
-Several processes (`join_processes`, one per machine or per GPU) train as one: the mesh holds
+Several processes (`peers.join_processes`, one per machine or per GPU) train as one: the mesh holds
 every process's devices, each process runs the same program, and the results come back to
 every host whole (`Placement.real_runs`). Runs are then padded to fill every device, since
 each process must hold a share. Process 0 alone writes the run's files (`is_primary`).
@@ -31,51 +38,53 @@ each process must hold a share. Process 0 alone writes the run's files (`is_prim
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import os
-import socket
-import sys
-import threading
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, Callable, TypeVar
 
 import jax
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from rpo_jax import envs, peers, ppo
+from rpo_jax import diagnostics, envs, peers, ppo
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
 
 AXIS = "devices"
 T = TypeVar("T")
-PLACEMENTS = ("one device", "runs", "envs")
-# JAX's own join limit lies this far beyond ours, so that ours, with its one line, comes first.
-JAX_TIMEOUT_MARGIN = 30
+PLACEMENTS = ("one device", "runs", "envs", "epochs")
 
 
 @dataclasses.dataclass(frozen=True)
 class Placement:
-    """How the R runs of one command lie on the devices of `mesh` (None: one device)."""
+    """How the R runs of one command lie on the devices of `mesh` (None: one device), or with
+    `epochs_mesh`, how their epochs do while their state lies on one device."""
 
     mesh: Mesh | None
     shard_envs: bool
     num_runs: int
     processes: int = 1  # the processes whose devices make up the mesh
+    epochs_mesh: Mesh | None = None
+
+    @property
+    def _devices(self) -> Mesh | None:
+        return self.mesh if self.epochs_mesh is None else self.epochs_mesh
 
     @property
     def count(self) -> int:
-        return 1 if self.mesh is None else self.mesh.size
+        return 1 if self._devices is None else self._devices.size
 
     @property
     def kind(self) -> str:
+        if self.epochs_mesh is not None:
+            return PLACEMENTS[3]
         return PLACEMENTS[0] if self.mesh is None else PLACEMENTS[2 if self.shard_envs else 1]
 
     @property
     def padded_runs(self) -> int:
-        """The runs trained: R, or R rounded up to a multiple of the devices when runs are split."""
-        return self.num_runs if self.kind != "runs" else -(-self.num_runs // self.count) * self.count
+        """The runs trained: R, or R rounded up to a multiple of the devices when runs (or their
+        epochs) are split."""
+        return self.num_runs if self.kind not in ("runs", "epochs") else -(-self.num_runs // self.count) * self.count
 
     def describe(self) -> dict[str, Any]:
         """What config.json and summary.json record of the placement."""
@@ -88,17 +97,17 @@ class Placement:
         return ppo.build_trainer(config, env)
 
     def _sharding(self) -> NamedSharding:
-        return NamedSharding(self.mesh, PartitionSpec(AXIS))
+        return NamedSharding(self._devices, PartitionSpec(AXIS))
 
     def _spread(self, fn: Callable, in_specs: Any) -> Callable:
         """`fn` (on one device's share) as one jitted program over the mesh."""
-        mapped = jax.shard_map(fn, mesh=self.mesh, in_specs=in_specs, out_specs=PartitionSpec(AXIS), check_vma=False)
+        mapped = jax.shard_map(fn, mesh=self._devices, in_specs=in_specs, out_specs=PartitionSpec(AXIS), check_vma=False)
         return jax.jit(mapped, out_shardings=self._sharding())
 
     def init_program(self, trainer: ppo.Trainer) -> Callable[[jax.Array, ppo.Hyperparams], ppo.TrainState]:
         """(keys [R], hparams [R]) -> the placed initial state of every run."""
         init = map_runs(trainer.init)
-        if self.kind == "one device":
+        if self.mesh is None:
             return jax.jit(init)
         if self.kind == "envs":
             return self._spread(lambda keys, hparams: _stacked(init(keys, hparams)), PartitionSpec())
@@ -107,12 +116,45 @@ class Placement:
 
     def chunk_program(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
         """The compiled `chunk` updates of every run: placed state -> (state, metrics)."""
+        if self.kind == "epochs":
+            return self._split_chunk(trainer, chunk, abstract_state)
+
         def chunk_updates(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
             return trainer.scan_diagnosed_updates(state, chunk)
 
         program = self._per_device(map_runs(chunk_updates))
-        placed = abstract_state if self.kind == "one device" else self._placed_abstract(abstract_state)
+        placed = abstract_state if self.mesh is None else self._placed_abstract(abstract_state)
         return program.lower(placed).compile()
+
+    def _split_chunk(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
+        """`chunk_program` of the epochs placement: each update as two compiled programs, the
+        rollouts (`ppo.collect`) on the first device, then the epochs (`ppo.learn`) over the mesh."""
+
+        def collect(state: ppo.TrainState) -> tuple[ppo.Collected, Any]:
+            collected, traj = ppo.collect(trainer, state)
+            return collected, diagnostics.count_rollout(traj)
+
+        def learn(collected: ppo.Collected, counts: Any) -> tuple[ppo.TrainState, Any]:
+            state, metrics = ppo.learn(trainer, collected)
+            return state, (metrics, diagnostics.Diagnostics.of(counts, state, trainer.config))
+
+        collect_program = jax.jit(map_runs(collect)).lower(abstract_state).compile()
+        spread = jax.jit(lambda tree: pad_runs(tree, self.padded_runs), out_shardings=self._sharding())
+        spread_abstract = self._placed_abstract(jax.eval_shape(spread, jax.eval_shape(map_runs(collect), abstract_state)))
+        learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(*spread_abstract).compile()
+        real = jax.jit(lambda tree: jax.tree.map(lambda leaf: leaf[: self.num_runs], tree))
+        # As one scan's outputs: [R, chunk, ...].
+        stacked = jax.jit(lambda outputs: jax.tree.map(lambda *leaves: jax.numpy.stack(leaves, axis=1), *outputs))
+
+        def run_chunk(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
+            outputs = []
+            for _ in range(chunk):
+                learnt = learn_program(*spread(collect_program(state)))
+                state, output = real(jax.device_put(learnt, jax.local_devices()[0]))
+                outputs.append(output)
+            return state, stacked(outputs)
+
+        return run_chunk
 
     def restart_program(self, trainer: ppo.Trainer) -> Callable[[ppo.TrainState], ppo.TrainState]:
         """Placed state -> the same with fresh episodes in every run (`Trainer.restart_episodes`),
@@ -122,7 +164,7 @@ class Placement:
 
     def _per_device(self, runs_fn: Callable) -> Callable:
         """`runs_fn` (on a batch of runs' states) jitted for this placement."""
-        if self.kind == "one device":
+        if self.mesh is None:
             return jax.jit(runs_fn)
         body = runs_fn if self.kind == "runs" else lambda state: _stacked(runs_fn(_unstacked(state)))
         return self._spread(body, PartitionSpec(AXIS))
@@ -194,10 +236,16 @@ def pad_runs(tree: Any, runs: int) -> Any:
     return jax.tree.map(pad, tree)
 
 
-def make_placement(devices: int | None, shard_envs: bool, num_runs: int, config: Config) -> Placement:
+def make_placement(
+    devices: int | None, shard_envs: bool, num_runs: int, config: Config, split_epochs: bool = False
+) -> Placement:  # fmt: skip
     """The placement of `num_runs` runs on `devices` local devices of every process (None: all of
     them), checked: bad layouts raise UsageError naming what is allowed."""
     available, processes = jax.local_devices(), jax.process_count()
+    if split_epochs and shard_envs:
+        raise UsageError("--split-epochs splits the runs' epochs, --shard-envs each run's environments: choose one")
+    if split_epochs and processes > 1:
+        raise UsageError(f"--split-epochs trains in one process, over its devices; this run has {processes} processes")
     if devices is not None and devices < 1:
         raise UsageError(f"--devices must be >= 1, got {devices}")
     if devices is not None and devices > len(available):
@@ -209,7 +257,9 @@ def make_placement(devices: int | None, shard_envs: bool, num_runs: int, config:
         count = min(count, num_runs)
     if count == 1 and processes == 1:
         return Placement(None, False, num_runs)
-    chosen = [device for process in range(processes) for device in _devices_of(process)[:count]]
+    chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]
+    if split_epochs:
+        return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen), (AXIS,)))
     return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes)
 
 
@@ -237,119 +287,6 @@ def check_cpu_split(count: int | None) -> None:
         raise UsageError(f"--cpu-devices splits the CPU, but JAX trains on {platform} here; --devices chooses among those")
 
 
-def join_processes(
-    coordinator: str | None, num_processes: int | None, process_id: int | None, detect: bool, timeout: int
-) -> None:  # fmt: skip
-    """Joins this process to the others of a run of several processes (`jax.distributed.initialize`,
-    which must come before any other use of JAX): from all three of `coordinator` (process 0's
-    HOST:PORT), `num_processes` and `process_id`, or with `detect`, from the cluster job that JAX
-    recognises (SLURM, Open MPI, ...) for those not given. None of them: one process alone.
-    The processes wait `timeout` seconds for each other to join, and a process that stops
-    answering for as long ends the others (JAX's heartbeat). Processes holding unequal numbers
-    of local devices are refused: JAX's collectives need as many."""
-    given = {"--coordinator": coordinator, "--num-processes": num_processes, "--process-id": process_id}
-    missing = [flag for flag, value in given.items() if value is None]
-    if not detect and len(missing) == len(given):
-        return
-    if not detect and missing:
-        raise UsageError(
-            f"{', '.join(missing)} missing: give all of --coordinator, --num-processes and --process-id, "
-            "or --distributed to read what is not given from the cluster job (SLURM, Open MPI)"
-        )
-    if coordinator is not None:
-        check_coordinator(coordinator, listens=process_id == 0)
-    if num_processes is not None and num_processes < 1:
-        raise UsageError(f"--num-processes must be >= 1, got {num_processes}")
-    if process_id is not None and not 0 <= process_id < (num_processes or process_id + 1):
-        below = "" if num_processes is None else f" and below --num-processes {num_processes}"
-        raise UsageError(f"--process-id must be >= 0{below}, got {process_id}")
-    if timeout < 1:
-        raise UsageError(f"--coordinator-timeout must be >= 1 second, got {timeout}")
-    try:
-        with _exit_unless_joined(coordinator, num_processes, process_id, timeout):
-            # Flags given in full are the whole layout: JAX's detection would read a cluster job's instead.
-            jax.distributed.initialize(
-                coordinator, num_processes, process_id, cluster_detection_method=None if detect else "deactivate",
-                # JAX's heartbeat ends a process with a C++ abort: later than `watch_peers`, which ends it in one line.
-                initialization_timeout=timeout + JAX_TIMEOUT_MARGIN, heartbeat_timeout_seconds=3 * timeout,
-                shutdown_timeout_seconds=timeout,
-            )  # fmt: skip
-    except (RuntimeError, ValueError) as error:
-        detail = str(error).strip().splitlines()[0][:200] if str(error).strip() else type(error).__name__
-        hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
-        hint = hint if detect else ""
-        raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
-    peers.watch(coordinator or "of the cluster job", timeout)
-    local_counts = sorted({len(_devices_of(process)) for process in range(jax.process_count())})
-    if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
-        peers.stop_watching()
-        raise UsageError(
-            f"the processes hold {' or '.join(map(str, local_counts))} local devices; JAX's collectives need as many "
-            "on each (the same --cpu-devices, or as many GPUs visible to each)"
-        )
-
-
-def check_coordinator(coordinator: str, listens: bool) -> None:
-    """Refuses a --coordinator that is not HOST:PORT with a port JAX can listen on and connect to
-    (port 0 would make process 0 listen on a port the others cannot know), and, where this
-    process `listens` there (process 0), a port in use on this host."""
-    host, _, port = coordinator.rpartition(":")
-    if not host or not port.isdigit():
-        raise UsageError(f"--coordinator must be HOST:PORT (process 0's address and a free port), got {coordinator}")
-    if not 1 <= int(port) <= 65535:
-        raise UsageError(f"--coordinator {coordinator}: the port must be in 1..65535, got {int(port)}")
-    if listens:
-        with socket.socket() as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as JAX's server: a closed port's TIME_WAIT is free
-            try:
-                probe.bind(("", int(port)))
-            except OSError as error:
-                raise UsageError(
-                    f"--coordinator {coordinator}: process 0 cannot listen on port {port} here ({error.strerror}); "
-                    "choose a free port"
-                ) from None
-
-
-@contextlib.contextmanager
-def _exit_unless_joined(
-    coordinator: str | None, num_processes: int | None, process_id: int | None, timeout: int
-) -> Iterator[None]:
-    """Ends the process with one line and exit code 2 if the block (the join) has not returned
-    after `timeout` seconds. JAX's own time limit ends it with SIGABRT and a C++ stack dump
-    from a thread of its own, which no Python code can catch: this one comes first."""
-
-    def give_up() -> None:
-        address = coordinator or "the cluster job's coordinator"
-        if process_id != 0 and coordinator is not None and not _answers(coordinator):
-            why = f"nothing answered at the coordinator {address} (process 0, started with the same --coordinator)"
-        else:
-            why = f"not all {num_processes or 'the'} processes joined the coordinator {address}"
-        print(
-            f"error: could not join the run's processes: {why} within {timeout} s; start every --process-id with the "
-            "same --coordinator and --num-processes, or wait longer with --coordinator-timeout SECONDS",
-            file=sys.stderr, flush=True,
-        )  # fmt: skip
-        os._exit(2)  # the main thread is blocked inside JAX's C++ join: nothing else would end it
-
-    timer = threading.Timer(timeout, give_up)
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
-
-
-def _answers(coordinator: str) -> bool:
-    """Whether something accepts connections at HOST:PORT."""
-    host, _, port = coordinator.rpartition(":")
-    try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=2):
-            return True
-    except OSError:
-        return False
-
-
 def refused_together(make: Callable[[], T]) -> T:
     """`make()`, refused on every process when it is refused (UsageError) on any: process 0
     alone checks the run directory, and a process that went on would wait for it in vain."""
@@ -367,10 +304,6 @@ def refused_together(make: Callable[[], T]) -> T:
     if error is not None:
         raise error
     return made
-
-
-def _devices_of(process: int) -> list[jax.Device]:
-    return [device for device in jax.devices() if device.process_index == process]
 
 
 def is_primary() -> bool:

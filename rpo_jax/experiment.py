@@ -172,9 +172,8 @@ NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
 OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
 # experiments recorded before they could be given continue.
-RECORDED_WHERE_GIVEN = (
-    "seed", "log_every", "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes",
-)  # fmt: skip
+RECORDED_WHERE_GIVEN = ("seed", "log_every", "devices", "shard_envs", "split_epochs", "capture_video",
+                        "capture_video_every", "capture_video_episodes")  # fmt: skip
 
 
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:
@@ -343,7 +342,7 @@ def job_plan(
     from rpo_jax import plan
 
     preset, config = job_config(definition, env, job)
-    processes = Processes(devices=definition.get("devices"), shard_envs=definition.get("shard_envs", False))
+    processes = Processes(**{name: definition[name] for name in ("devices", "shard_envs", "split_epochs") if name in definition})
     population = Pbt(pbt=True, population=job.population, pbt_fields=job.pbt_fields) if job.population else None
     return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset, grid, population)
 

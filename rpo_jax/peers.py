@@ -1,4 +1,5 @@
-"""The processes of a run watching each other, so that a dead one ends the others in one line.
+"""The processes of a run: joining them (`join_processes`), and each watching the others, so that
+a dead one ends the others in one line.
 
 JAX's own heartbeat ends every process with a C++ abort and a stack dump when one stops
 answering. Each process here instead beats in the key-value store of JAX's coordinator (a
@@ -10,13 +11,17 @@ timeout, or a coordinator that stops answering, ends the process with one line a
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
+import socket
 import sys
 import threading
 import time
-from typing import Any
+from typing import Any, Iterator
 
 import jax
+
+from rpo_jax.errors import UsageError
 
 BEAT, FINISHED, LEFT = "rpo_jax/beat/", "rpo_jax/finished/", "rpo_jax/left/"
 # How long process 0, which holds the coordinator, waits for the others' exits when all stop.
@@ -26,6 +31,125 @@ LEAVE_WAIT_MS, LEAVE_GRACE_S = 30_000, 0.2
 _stopped = threading.Event()
 # What a collective's error says when a peer went away (gloo on CPUs; the coordination service).
 LOST_PEER_WORDS = ("Connection closed by peer", "Connection reset by peer", "Gloo", "UNAVAILABLE")
+# JAX's own join limit lies this far beyond ours, so that ours, with its one line, comes first.
+JAX_TIMEOUT_MARGIN = 30
+
+
+def join_processes(
+    coordinator: str | None, num_processes: int | None, process_id: int | None, detect: bool, timeout: int
+) -> None:  # fmt: skip
+    """Joins this process to the others of a run of several processes (`jax.distributed.initialize`,
+    which must come before any other use of JAX): from all three of `coordinator` (process 0's
+    HOST:PORT), `num_processes` and `process_id`, or with `detect`, from the cluster job that JAX
+    recognises (SLURM, Open MPI, ...) for those not given. None of them: one process alone.
+    The processes wait `timeout` seconds for each other to join, and a process that stops
+    answering for as long ends the others (JAX's heartbeat). Processes holding unequal numbers
+    of local devices are refused: JAX's collectives need as many."""
+    given = {"--coordinator": coordinator, "--num-processes": num_processes, "--process-id": process_id}
+    missing = [flag for flag, value in given.items() if value is None]
+    if not detect and len(missing) == len(given):
+        return
+    if not detect and missing:
+        raise UsageError(
+            f"{', '.join(missing)} missing: give all of --coordinator, --num-processes and --process-id, "
+            "or --distributed to read what is not given from the cluster job (SLURM, Open MPI)"
+        )
+    if coordinator is not None:
+        check_coordinator(coordinator, listens=process_id == 0)
+    if num_processes is not None and num_processes < 1:
+        raise UsageError(f"--num-processes must be >= 1, got {num_processes}")
+    if process_id is not None and not 0 <= process_id < (num_processes or process_id + 1):
+        below = "" if num_processes is None else f" and below --num-processes {num_processes}"
+        raise UsageError(f"--process-id must be >= 0{below}, got {process_id}")
+    if timeout < 1:
+        raise UsageError(f"--coordinator-timeout must be >= 1 second, got {timeout}")
+    try:
+        with _exit_unless_joined(coordinator, num_processes, process_id, timeout):
+            # Flags given in full are the whole layout: JAX's detection would read a cluster job's instead.
+            jax.distributed.initialize(
+                coordinator, num_processes, process_id, cluster_detection_method=None if detect else "deactivate",
+                # JAX's heartbeat ends a process with a C++ abort: later than `watch_peers`, which ends it in one line.
+                initialization_timeout=timeout + JAX_TIMEOUT_MARGIN, heartbeat_timeout_seconds=3 * timeout,
+                shutdown_timeout_seconds=timeout,
+            )  # fmt: skip
+    except (RuntimeError, ValueError) as error:
+        detail = str(error).strip().splitlines()[0][:200] if str(error).strip() else type(error).__name__
+        hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
+        hint = hint if detect else ""
+        raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
+    watch(coordinator or "of the cluster job", timeout)
+    local_counts = sorted({len(devices_of(process)) for process in range(jax.process_count())})
+    if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
+        stop_watching()
+        raise UsageError(
+            f"the processes hold {' or '.join(map(str, local_counts))} local devices; JAX's collectives need as many "
+            "on each (the same --cpu-devices, or as many GPUs visible to each)"
+        )
+
+
+def check_coordinator(coordinator: str, listens: bool) -> None:
+    """Refuses a --coordinator that is not HOST:PORT with a port JAX can listen on and connect to
+    (port 0 would make process 0 listen on a port the others cannot know), and, where this
+    process `listens` there (process 0), a port in use on this host."""
+    host, _, port = coordinator.rpartition(":")
+    if not host or not port.isdigit():
+        raise UsageError(f"--coordinator must be HOST:PORT (process 0's address and a free port), got {coordinator}")
+    if not 1 <= int(port) <= 65535:
+        raise UsageError(f"--coordinator {coordinator}: the port must be in 1..65535, got {int(port)}")
+    if listens:
+        with socket.socket() as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as JAX's server: a closed port's TIME_WAIT is free
+            try:
+                probe.bind(("", int(port)))
+            except OSError as error:
+                raise UsageError(
+                    f"--coordinator {coordinator}: process 0 cannot listen on port {port} here ({error.strerror}); "
+                    "choose a free port"
+                ) from None
+
+
+@contextlib.contextmanager
+def _exit_unless_joined(
+    coordinator: str | None, num_processes: int | None, process_id: int | None, timeout: int
+) -> Iterator[None]:
+    """Ends the process with one line and exit code 2 if the block (the join) has not returned
+    after `timeout` seconds. JAX's own time limit ends it with SIGABRT and a C++ stack dump
+    from a thread of its own, which no Python code can catch: this one comes first."""
+
+    def give_up() -> None:
+        address = coordinator or "the cluster job's coordinator"
+        if process_id != 0 and coordinator is not None and not _answers(coordinator):
+            why = f"nothing answered at the coordinator {address} (process 0, started with the same --coordinator)"
+        else:
+            why = f"not all {num_processes or 'the'} processes joined the coordinator {address}"
+        print(
+            f"error: could not join the run's processes: {why} within {timeout} s; start every --process-id with the "
+            "same --coordinator and --num-processes, or wait longer with --coordinator-timeout SECONDS",
+            file=sys.stderr, flush=True,
+        )  # fmt: skip
+        os._exit(2)  # the main thread is blocked inside JAX's C++ join: nothing else would end it
+
+    timer = threading.Timer(timeout, give_up)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+def _answers(coordinator: str) -> bool:
+    """Whether something accepts connections at HOST:PORT."""
+    host, _, port = coordinator.rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=2):
+            return True
+    except OSError:
+        return False
+
+
+def devices_of(process: int) -> list[jax.Device]:
+    return [device for device in jax.devices() if device.process_index == process]
 
 
 def watch(coordinator: str, timeout: int) -> None:

@@ -40,13 +40,13 @@ VIDEOS_PER_RUN = 4
 # evaluation during training existed lack the eval fields and read back with evaluation off.
 PLAN_FIELDS = (
     "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
-    "devices", "shard_envs", "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
+    "devices", "shard_envs", "split_epochs", "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
 )  # fmt: skip
 # The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
 PLAN_TYPES: dict[str, tuple[type, ...]] = {
     "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
     "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
-    "devices": (int, type(None)), "shard_envs": (bool,),
+    "devices": (int, type(None)), "shard_envs": (bool,), "split_epochs": (bool,),
     "capture_video": (bool,), "capture_video_every": (int, type(None)), "capture_video_episodes": (int,),
     "pbt": (dict, type(None)),
 }  # fmt: skip
@@ -72,6 +72,7 @@ class RunPlan:
     eval_episodes: int = RunSpec.eval_episodes
     devices: int | None = Processes.devices  # local devices to train on (see rpo_jax.devices); None: all
     shard_envs: bool = Processes.shard_envs  # split each run's environments over the devices instead of the runs
+    split_epochs: bool = Processes.split_epochs  # split only the runs' epochs over the devices (rpo_jax.devices)
     capture_video: bool = RunSpec.capture_video  # videos of the deterministic policy during training (rpo_jax.video)
     capture_video_every: int | None = RunSpec.capture_video_every  # env steps per run between videos; None: VIDEOS_PER_RUN
     capture_video_episodes: int = RunSpec.capture_video_episodes
@@ -163,9 +164,11 @@ def new_plan(
         eval_every=run.eval_every, eval_episodes=run.eval_episodes, devices=processes.devices,
         capture_video=run.capture_video, capture_video_every=run.capture_video_every,
         capture_video_episodes=run.capture_video_episodes,
-        shard_envs=processes.shard_envs, pbt=evolution, grid=tuple(grid),
+        shard_envs=processes.shard_envs, split_epochs=processes.split_epochs, pbt=evolution, grid=tuple(grid),
         # A bad layout is refused here, before anything is written.
-        placement=make_placement(processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config),
+        placement=make_placement(
+            processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config, processes.split_epochs
+        ),
     )  # fmt: skip
 
 
@@ -280,7 +283,9 @@ def resumed_plan(out: Path) -> RunPlan:
             check_pbt(plan["pbt"], config, plan["num_seeds"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
-    placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config)
+    placement = make_placement(
+        plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config, plan["split_epochs"]
+    )
     resumed = RunPlan(
         out=out, config=config, resuming=True, grid=tuple(grid), placement=placement,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},

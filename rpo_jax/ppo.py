@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from rpo_jax import envs
+from rpo_jax import diagnostics, envs
 from rpo_jax.acting import wrap_for_training
 from rpo_jax.config import Config
 from rpo_jax.hyperparams import Hyperparams
@@ -74,46 +74,6 @@ class Metrics:
     clip_fraction: jax.Array
     action_std: jax.Array
     learning_rate: jax.Array
-
-
-@struct.dataclass
-class Diagnostics:
-    """Per-update counts of non-finite numbers, for the runner's guard; not logged, so that
-    metrics.jsonl keeps its rows. Observations and rewards are the rollout's, as the trainer
-    saw them (normalised); parameters and statistics are those after the update. A huge but
-    finite observation overflows its normaliser's variance to inf while the normalised
-    observations stay finite (zeros), so the statistics are counted apart: {"obs_stats.var": n}."""
-
-    nonfinite_observations: jax.Array
-    nonfinite_rewards: jax.Array
-    nonfinite_parameters: jax.Array
-    nonfinite_statistics: dict[str, jax.Array]
-
-    @classmethod
-    def of(cls, traj: "Transition", state: "TrainState", config: Config) -> "Diagnostics":
-        def count(*arrays):
-            return sum((~jnp.isfinite(x)).sum() for x in arrays)
-
-        statistics = {
-            f"{name}.{field}": count(getattr(stats, field))
-            for name, stats in running_statistics(state, config).items()
-            for field in ("mean", "var", "count")
-        }
-        return cls(
-            count(traj.obs, traj.final_obs), count(traj.reward, traj.episode_return), count(*jax.tree.leaves(state.params)),
-            statistics,
-        )  # fmt: skip
-
-
-def running_statistics(state: "TrainState", config: Config) -> dict[str, envs.RunningMeanStd]:
-    """The running statistics that training reads, by their field's name: the observation
-    normaliser's (obs_stats), the reward normaliser's (return_stats) and the critic's targets'
-    (value_stats), each where its option is on (an unused one is never read)."""
-    found = jax.tree_util.tree_flatten_with_path(state.env_state, is_leaf=lambda x: isinstance(x, envs.RunningMeanStd))[0]
-    named = {path[-1].name: stats for path, stats in found if isinstance(stats, envs.RunningMeanStd)}
-    named["value_stats"] = state.value_stats
-    used = {"obs_stats": config.normalize_obs, "return_stats": config.normalize_reward, "value_stats": config.normalize_value}
-    return {name: stats for name, stats in named.items() if used.get(name, True)}
 
 
 @struct.dataclass
@@ -185,12 +145,14 @@ class Trainer:
     def scan_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
         return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
 
-    def scan_diagnosed_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, tuple[Metrics, Diagnostics]]:
+    def scan_diagnosed_updates(
+        self, state: TrainState, num_updates: int
+    ) -> tuple[TrainState, tuple[Metrics, diagnostics.Diagnostics]]:
         """`scan_updates` with each update's `Diagnostics` next to its metrics."""
 
         def step(state, _):
             new_state, metrics, traj = update_with_rollout(self, state)
-            return new_state, (metrics, Diagnostics.of(traj, new_state, self.config))
+            return new_state, (metrics, diagnostics.Diagnostics.of(diagnostics.count_rollout(traj), new_state, self.config))
 
         return jax.lax.scan(step, state, None, length=num_updates)
 
@@ -392,33 +354,57 @@ def update(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics]:
 
 def update_with_rollout(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics, Transition]:
     """`update`, also returning its rollout's transitions [T, N]."""
+    collected, traj = collect(trainer, state)
+    return *learn(trainer, collected), traj
+
+
+@struct.dataclass
+class Collected:
+    """An update's first half, for its minibatch epochs: the state after the rollout (its key
+    moved on, this update's learning rate set, the return statistics updated), the batch [B],
+    the epochs' key and the rollout's finished episodes (`finished_episodes`)."""
+
+    state: TrainState
+    batch: Batch
+    epochs_key: jax.Array
+    episodes: tuple[jax.Array, jax.Array, jax.Array]
+
+
+def collect(trainer: Trainer, state: TrainState) -> tuple[Collected, Transition]:
+    """The rollout and its batch: `update` is `learn(trainer, collect(trainer, state)[0])`."""
     config = trainer.config
     key, rollout_key, epochs_key = jax.random.split(state.key, 3)
     opt_state = state.opt_state
     if config.lr_schedule == "linear":
         opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / config.num_updates))
-    learning_rate = opt_state.hyperparams["learning_rate"]
-
     env_state, obs, traj = rollout(trainer, state.params, state.env_state, state.obs, rollout_key)
     batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
-    params, opt_state, loss_metrics = minibatch_epochs(trainer, state.hparams, state.params, opt_state, batch, epochs_key)
+    episodes = finished_episodes(traj, state, trainer.axis_name)
+    state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
+    return Collected(state, batch, epochs_key, episodes), traj
 
-    episode_return, episode_length, finished = finished_episodes(traj, state, trainer.axis_name)
+
+def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:
+    """The minibatch epochs on a collected batch: the state after the update, and its metrics."""
+    state, (episode_return, episode_length, finished) = collected.state, collected.episodes
+    params, opt_state, loss_metrics = minibatch_epochs(
+        trainer, state.hparams, state.params, state.opt_state, collected.batch, collected.epochs_key
+    )
     update_count = state.update + 1
     metrics = Metrics(
-        env_steps=update_count * config.batch_size,
+        env_steps=update_count * trainer.config.batch_size,
         episode_return=episode_return,
         episode_length=episode_length,
         episodes_finished=finished,
         action_std=jnp.exp(actor_log_scale(params["actor"])).mean(),
-        learning_rate=learning_rate,
+        learning_rate=state.opt_state.hyperparams["learning_rate"],
         **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
     )
-    new_state = TrainState(
-        params, opt_state, env_state, obs, key, update_count, state.hparams, value_stats,
-        episode_return, episode_length,
+    new_state = state.replace(
+        params=params, opt_state=opt_state, update=update_count,
+        last_episode_return=episode_return, last_episode_length=episode_length,
     )  # fmt: skip
-    return new_state, metrics, traj
+    return new_state, metrics
 
 
 def finished_episodes(

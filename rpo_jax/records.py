@@ -9,6 +9,7 @@ import jax
 import numpy as np
 
 from rpo_jax import ppo
+from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.plan import RunPlan
 from rpo_jax.scores import sample_std, tail_mean
@@ -52,7 +53,7 @@ def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) 
     return {**values, "sps": sps}
 
 
-def first_nonfinite(metrics: ppo.Metrics, diagnostics: ppo.Diagnostics) -> tuple[int, int, list[str]] | None:
+def first_nonfinite(metrics: ppo.Metrics, diagnostics: Diagnostics) -> tuple[int, int, list[str]] | None:
     """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
     or inf, naming what went non-finite first: observation, reward, loss (any logged metric),
     parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
@@ -86,7 +87,7 @@ def divergence_message(
     )
 
 
-# The running statistics of ppo.running_statistics, as a divergence names them.
+# The running statistics of diagnostics.running_statistics, as a divergence names them.
 STATISTICS = {"obs_stats": "observation normaliser's", "return_stats": "reward normaliser's", "value_stats": "value normaliser's"}
 
 

@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterator, NamedTuple, Protocol, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import devices, envs, evaluation, population, ppo, video
+from rpo_jax import devices, diagnostics, envs, evaluation, population, ppo, video
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
@@ -89,7 +89,7 @@ class Compiled:
     placement: devices.Placement
     state: ppo.TrainState  # placed on the devices
     record: dict[str, Any]  # the checkpoint's: updates done, metrics.jsonl's size, train seconds
-    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, ppo.Diagnostics]]]
+    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, diagnostics.Diagnostics]]]
     chunk: int
     compile_seconds: float
     run_eval: evaluation.EvaluationProgram | None = None  # None: evaluation off
@@ -106,7 +106,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     before its first checkpoint leaves nothing to resume, so its directory is removed and the
     same command can run again; after a checkpoint, and after Ctrl-C, `--resume` continues it.
 
-    Of several processes (`devices.join_processes`), each trains its share and returns the
+    Of several processes (`peers.join_processes`), each trains its share and returns the
     summary, but only process 0 writes the run directory and calls the sinks and `progress`;
     the others write only their shares of the checkpoints (orbax's multi-process saves)."""
     grid = list(plan.grid)

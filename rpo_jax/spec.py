@@ -118,6 +118,9 @@ class Processes(CompileCache):
     at most one device per run, padded with dropped copies of the first run when the devices do not divide them"""
     shard_envs: bool = False
     """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
+    split_epochs: bool = False
+    """split only the runs' minibatch epochs over the devices and step all their environments on the first, where one callback
+    then steps every run's simulators: for host-side environments (Gym, DMC) on a CPU made several devices by --cpu-devices"""
     cpu_devices: int | None = None
     """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
     sweep points train faster on a CPU of several cores); None: JAX's default (one)"""

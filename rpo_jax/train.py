@@ -181,11 +181,11 @@ def checked_capture(plan: Any) -> Any:
 
 def run_command(argv: list[str]) -> int:
     args = parse_args(argv)
-    from rpo_jax import devices  # JAX, first used here: the CPU split and the processes joined first
+    from rpo_jax import devices, peers  # JAX, first used here: the CPU split and the processes joined first
 
     where = args.processes
     devices.split_cpu(where.cpu_devices)
-    devices.join_processes(where.coordinator, where.num_processes, where.process_id, where.distributed, where.coordinator_timeout)
+    peers.join_processes(where.coordinator, where.num_processes, where.process_id, where.distributed, where.coordinator_timeout)
     devices.check_cpu_split(where.cpu_devices)
     plan = devices.refused_together(lambda: checked_capture(make_plan(args, argv)))
     summary = train_with_display(plan, args.tracking, args.processes)

@@ -136,12 +136,17 @@ def test_merged_normaliser_statistics_equal_those_of_the_whole_batch(gradients):
 
 @pytest.mark.parametrize(
     "flags",
-    [pytest.param(["--num-seeds", "3", "--devices", "2"], marks=pytest.mark.slow), ["--devices", "2", "--shard-envs"]],
-    ids=["runs", "envs"],
+    [
+        pytest.param(["--num-seeds", "3", "--devices", "2"], marks=pytest.mark.slow),
+        ["--devices", "2", "--shard-envs"],
+        ["--num-seeds", "3", "--devices", "2", "--split-epochs"],
+    ],
+    ids=["runs", "envs", "epochs"],
 )
 def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags):
     # Split runs checkpoint the real runs and pad them again (25 s, slow); a data-parallel run
-    # checkpoints its stacked state, one slice per device.
+    # checkpoints its stacked state, one slice per device; with --split-epochs the state lies on
+    # the first device, and only each update's epochs are padded and split.
     result = device_check(tmp_path, "resume", *flags)
     assert result == {"codes": [0, 0], "same_params": True, "same_rows": True, "rows": 4 * (3 if "3" in flags else 1)}
 
@@ -150,12 +155,19 @@ HOST = ["--env", "gym/BipedalWalker-v3", "--num-seeds", "2"]  # Box2D simulators
 
 
 def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
-    commands = (json.dumps([*HOST, "--devices", str(count), f"d{count}"]) for count in (1, 2))
-    results = device_check(tmp_path, "commands", *commands)
-    assert results["d1"]["code"] == 0 and results["d2"]["code"] == 0, results
-    for a, b in zip(params_of(tmp_path / "d2"), params_of(tmp_path / "d1"), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
-    assert RunDir(tmp_path / "d2").read_summary()["devices"] == 2
+    # Runs split over 2 devices, and with --split-epochs their rollouts on the first device (one
+    # callback for both runs' simulators) and their epochs over both: each within rounding of
+    # the runs on one device (see test_runs_split_over_devices_train_as_on_one_device).
+    layouts = {"d1": ["--devices", "1"], "d2": ["--devices", "2"], "epochs": ["--devices", "2", "--split-epochs"]}
+    results = device_check(tmp_path, "commands", *(json.dumps([*HOST, *flags, name]) for name, flags in layouts.items()))
+    assert all(result["code"] == 0 for result in results.values()), results
+    for split in ("d2", "epochs"):
+        for a, b in zip(params_of(tmp_path / split), params_of(tmp_path / "d1"), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=2e-5)
+        reference_rows = rows_of(tmp_path / "d1")
+        assert [(r["run"], r["update"]) for r in rows_of(tmp_path / split)] == [(r["run"], r["update"]) for r in reference_rows]
+    summaries = {split: RunDir(tmp_path / split).read_summary() for split in ("d2", "epochs")}
+    assert [(summary["placement"], summary["devices"]) for summary in summaries.values()] == [("runs", 2), ("epochs", 2)]
 
 
 @pytest.mark.slow  # 17 s; host-side runs split stay in the test above
@@ -182,6 +194,7 @@ BAD_LAYOUTS = {
     "too-many": (["--devices", "5"], "--devices 5: only 4 local cpu device(s) here"),
     "envs": (["--num-envs", "6", "--shard-envs"], "--shard-envs over 4 devices needs num_envs divisible by 4, got 6"),
     "minibatch": (["--num-envs", "4", "--num-steps", "3", "--shard-envs"], "needs the minibatch"),
+    "epochs-envs": (["--split-epochs", "--shard-envs"], "--split-epochs splits the runs' epochs, --shard-envs each run's"),
 }
 
 

@@ -1,4 +1,4 @@
-"""Several processes joined with jax.distributed (rpo_jax.devices.join_processes), as processes on
+"""Several processes joined with jax.distributed (rpo_jax.peers.join_processes), as processes on
 localhost with one forced host CPU device each and JAX's CPU collectives (gloo, its default on
 CPU): they train as one process does, host-side simulators and populations (--pbt) included, only
 process 0 writes the run, a resumed run continues exactly, and bad process layouts are refused in one line."""

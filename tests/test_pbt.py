@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from point_mass import PointMass
 
-from rpo_jax import envs, pbt, ppo
+from rpo_jax import diagnostics, envs, pbt, ppo
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
 
@@ -68,12 +68,12 @@ def outside_statistics(state):
 def test_exploit_copies_exactly_the_chosen_members_state_and_nothing_else(population):
     donors = jnp.asarray([0, 1, 2, 6, 4, 5, 6, 0], jnp.int32)  # 3 and 7 copy 6 and 0
     copied = pbt.exploit(population, donors)
-    stats = ppo.running_statistics(population, CONFIG)
+    stats = diagnostics.running_statistics(population, CONFIG)
     assert "obs_stats" in stats and "return_stats" in stats  # the normalisers that must travel
     for member, donor in enumerate(np.asarray(donors)):
         for part in ("params", "opt_state", "hparams", "value_stats"):
             assert same((getattr(copied, part), member), (getattr(population, part), donor)), (member, part)
-        assert same((ppo.running_statistics(copied, CONFIG), member), (stats, donor))
+        assert same((diagnostics.running_statistics(copied, CONFIG), member), (stats, donor))
         # The member's own: its environments, observations, key, counters and returns.
         for part in ("obs", "key", "update", "last_episode_return", "last_episode_length"):
             assert same((getattr(copied, part), member), (getattr(population, part), member)), (member, part)

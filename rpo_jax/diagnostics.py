@@ -1,0 +1,59 @@
+"""Counts of non-finite numbers in an update, for the runner's guard against training on them,
+and the running statistics that training reads. Apart from `rpo_jax.ppo`, which returns them
+beside each update's metrics (`Trainer.scan_diagnosed_updates`), since the update may run as two
+programs (`rpo_jax.devices`' epochs placement), each counting its own half."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from rpo_jax import envs
+from rpo_jax.config import Config
+
+
+@struct.dataclass
+class Diagnostics:
+    """Per-update counts of non-finite numbers, for the runner's guard; not logged, so that
+    metrics.jsonl keeps its rows. Observations and rewards are the rollout's, as the trainer
+    saw them (normalised); parameters and statistics are those after the update. A huge but
+    finite observation overflows its normaliser's variance to inf while the normalised
+    observations stay finite (zeros), so the statistics are counted apart: {"obs_stats.var": n}."""
+
+    nonfinite_observations: jax.Array
+    nonfinite_rewards: jax.Array
+    nonfinite_parameters: jax.Array
+    nonfinite_statistics: dict[str, jax.Array]
+
+    @classmethod
+    def of(cls, rollout_counts: tuple[jax.Array, jax.Array], state: Any, config: Config) -> "Diagnostics":
+        """From the rollout's counts (`count_rollout`) and the state after the update."""
+        statistics = {
+            f"{name}.{field}": count_nonfinite(getattr(stats, field))
+            for name, stats in running_statistics(state, config).items()
+            for field in ("mean", "var", "count")
+        }
+        return cls(*rollout_counts, count_nonfinite(*jax.tree.leaves(state.params)), statistics)
+
+
+def count_nonfinite(*arrays: jax.Array) -> jax.Array:
+    return sum((~jnp.isfinite(x)).sum() for x in arrays)
+
+
+def count_rollout(traj: Any) -> tuple[jax.Array, jax.Array]:
+    """The non-finite observations and rewards of a rollout, for `Diagnostics.of`."""
+    return count_nonfinite(traj.obs, traj.final_obs), count_nonfinite(traj.reward, traj.episode_return)
+
+
+def running_statistics(state: Any, config: Config) -> dict[str, envs.RunningMeanStd]:
+    """The running statistics that training reads, by their field's name: the observation
+    normaliser's (obs_stats), the reward normaliser's (return_stats) and the critic's targets'
+    (value_stats), each where its option is on (an unused one is never read)."""
+    found = jax.tree_util.tree_flatten_with_path(state.env_state, is_leaf=lambda x: isinstance(x, envs.RunningMeanStd))[0]
+    named = {path[-1].name: stats for path, stats in found if isinstance(stats, envs.RunningMeanStd)}
+    named["value_stats"] = state.value_stats
+    used = {"obs_stats": config.normalize_obs, "return_stats": config.normalize_reward, "value_stats": config.normalize_value}
+    return {name: stats for name, stats in named.items() if used.get(name, True)}
