@@ -149,6 +149,7 @@ def _answers(coordinator: str) -> bool:
 
 
 def devices_of(process: int) -> list[jax.Device]:
+    """The devices that process `process` of the run holds (its local devices)."""
     return [device for device in jax.devices() if device.process_index == process]
 
 
