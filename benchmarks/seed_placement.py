@@ -78,16 +78,16 @@ def main() -> None:
     phases, batch_of = phases_of(trainer)
     padded = devices.make_placement(2, False, args.seeds, config).padded_runs
     layouts = {"1 seed": (1, 1), f"{args.seeds} seeds, 1 device": (args.seeds, 1), f"{args.seeds} seeds, 2 devices": (padded, 2)}
-    programs = {}
+    programs, states = {}, {}
     for layout, (runs, num_devices) in layouts.items():
-        state = placed(trainer.init, num_devices)(jax.random.split(jax.random.PRNGKey(0), runs))
+        state = states[layout] = placed(trainer.init, num_devices)(jax.random.split(jax.random.PRNGKey(0), runs))
         batch = placed(batch_of, num_devices)(state)
         for phase in PHASES:
             program = placed(phases[phase], num_devices)
             inputs = (state, batch) if phase == "minibatch epochs" else (state,)
             programs[(phase, layout)] = lambda program=program, inputs=inputs: program(*inputs)
-    split = f"{args.seeds} seeds, split"
-    state = placed(trainer.init, 1)(jax.random.split(jax.random.PRNGKey(0), args.seeds))
+    # The split steps the same pools as the seeds on one device: its state is theirs.
+    split, state = f"{args.seeds} seeds, split", states[f"{args.seeds} seeds, 1 device"]
     placement = devices.make_placement(2, False, args.seeds, config, split_epochs=True)
     programs[("whole update", split)] = functools.partial(placement.chunk_program(trainer, 1, state), state)
     times = interleaved(programs, args.rounds)

@@ -146,11 +146,13 @@ class Placement:
         # As one scan's outputs: [R, chunk, ...].
         stacked = jax.jit(lambda outputs: jax.tree.map(lambda *leaves: jax.numpy.stack(leaves, axis=1), *outputs))
 
+        first = jax.local_devices()[0]  # where the state lies, as `collect_program` was compiled
+
         def run_chunk(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
             outputs = []
             for _ in range(chunk):
                 learnt = learn_program(*spread(collect_program(state)))
-                state, output = real(jax.device_put(learnt, jax.local_devices()[0]))
+                state, output = real(jax.device_put(learnt, first))
                 outputs.append(output)
             return state, stacked(outputs)
 

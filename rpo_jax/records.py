@@ -9,8 +9,8 @@ import jax
 import numpy as np
 
 from rpo_jax import ppo
-from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.config import SWEEPABLE
+from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.plan import RunPlan
 from rpo_jax.scores import sample_std, tail_mean
 

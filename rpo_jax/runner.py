@@ -26,10 +26,11 @@ from typing import Any, Callable, Iterator, NamedTuple, Protocol, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import devices, diagnostics, envs, evaluation, population, ppo, video
+from rpo_jax import devices, envs, evaluation, population, ppo, video
 from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
+from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
 from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label, training_record
 from rpo_jax.policy import params_bytes
@@ -89,7 +90,7 @@ class Compiled:
     placement: devices.Placement
     state: ppo.TrainState  # placed on the devices
     record: dict[str, Any]  # the checkpoint's: updates done, metrics.jsonl's size, train seconds
-    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, diagnostics.Diagnostics]]]
+    run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, Diagnostics]]]
     chunk: int
     compile_seconds: float
     run_eval: evaluation.EvaluationProgram | None = None  # None: evaluation off
