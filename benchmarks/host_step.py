@@ -6,7 +6,9 @@
 `DmcSimulators.step`: rpo_jax's pool (envpool's own `_send`/`_recv`, observations flattened,
 auto-reset, env order); `in the compiled scan`: the same steps through the trainer's host
 callbacks in a jitted `lax.scan` with random actions. Each figure is the median over rounds of
-microseconds per step of all `--num-envs` environments.
+microseconds per step of all `--num-envs` environments. And `envpool, one thread`: the public
+calls on a pool of one thread, the simulators' cost on one core; against `envpool send/recv`
+(as many threads as cores, up to --num-envs), how much of the cores stepping alone keeps busy.
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ def main() -> None:
     actions = np.random.default_rng(0).uniform(-1, 1, (args.steps, n, action_size)).astype(np.float32)
     public = envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=dmc.pool_threads(n), seed=0)
     public.reset(np.arange(n))
+    one_thread = envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=1, seed=0)
+    one_thread.reset(np.arange(n))
     pools = dmc.DmcSimulators(task, n, 0)
     pools.reset()
     batched = envs.make_vector_env(args.env, n)
@@ -50,10 +54,10 @@ def main() -> None:
 
     state, _ = jax.jit(batched.reset)(jax.random.PRNGKey(0))
 
-    def public_steps() -> None:
+    def public_steps(pool=public) -> None:
         for action in actions:
-            public.send(np.asarray(action, np.float64), np.arange(n))
-            public.recv()
+            pool.send(np.asarray(action, np.float64), np.arange(n))
+            pool.recv()
 
     def pool_steps() -> None:
         for action in actions:
@@ -63,6 +67,7 @@ def main() -> None:
         "envpool send/recv": public_steps,
         "DmcSimulators.step": pool_steps,
         "in the compiled scan": lambda: scan(state, jax.random.PRNGKey(1)),
+        "envpool, one thread": lambda: public_steps(one_thread),
     }
     times = interleaved(programs, args.rounds)
     print(f"{args.env}, {n} environments, {args.steps} steps a call, {args.rounds} rounds, {jax.devices()[0]}")
@@ -71,6 +76,7 @@ def main() -> None:
         print(f"{name:<22} {statistics.median(per_step):8.1f} us a step (min {min(per_step):.1f}, max {max(per_step):.1f})")
     pools.close()
     public.close()
+    one_thread.close()
     batched.close()
 
 

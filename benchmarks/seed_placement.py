@@ -9,9 +9,13 @@ of 2, as `rpo_jax.devices` pads them). For each, the rollout alone, the minibatc
 and the whole update (rollout, batch and epochs), each compiled once and timed in interleaved
 rounds; printed as medians and as the ratio to one seed's time. Then one more rollout of each,
 with the CPU time all the process's threads spent on it. And a fourth placement of the whole
-update, `split`: the trainer's `--split-epochs` (`rpo_jax.devices`), the rollout of all seeds on
-one device (one callback a step for every seed's pools), the epochs over both devices, the state
-moved between them in every update.
+update, `split`: the trainer's `--split-epochs` (`rpo_jax.devices`), the seeds in two groups
+that take turns, each group's rollout on the first device (one callback a step for all its
+pools) and its epochs on the second, so that one group's epochs overlap the other's rollout;
+timed as a chunk of SPLIT_CHUNK updates (the groups drain at a chunk's end), per update. Last,
+the two halves of the split's update for groups of 1 to --seeds seeds, in interleaved rounds:
+the rollout and batch (`ppo.collect`) on the first device and the epochs (`ppo.learn`) on the
+second; a group's update can take no less than the two together.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from rpo_jax.config import PRESETS  # noqa: E402
 
 
 PHASES = ("rollout", "minibatch epochs", "whole update")
+SPLIT_CHUNK = 8
 
 
 def phases_of(trainer: ppo.Trainer) -> tuple[dict, Callable]:
@@ -89,8 +94,9 @@ def main() -> None:
     # The split steps the same pools as the seeds on one device: its state is theirs.
     split, state = f"{args.seeds} seeds, split", states[f"{args.seeds} seeds, 1 device"]
     placement = devices.make_placement(2, False, args.seeds, config, split_epochs=True)
-    programs[("whole update", split)] = functools.partial(placement.chunk_program(trainer, 1, state), state)
+    programs[("whole update", split)] = functools.partial(placement.chunk_program(trainer, SPLIT_CHUNK, state), state)
     times = interleaved(programs, args.rounds)
+    times[("whole update", split)] = [seconds / SPLIT_CHUNK for seconds in times[("whole update", split)]]
     print(f"{args.env}, paper preset, 8 envs x 256 steps, {args.rounds} rounds; ms, median (min)")
     for phase in PHASES:
         one = statistics.median(times[(phase, "1 seed")])
@@ -106,7 +112,25 @@ def main() -> None:
         jax.block_until_ready(run())
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         print(f"rollout, {layout}: {wall * 1e3:.0f} ms, {cpu * 1e3:.0f} ms of CPU ({cpu / wall:.2f} cores)")
+    group_halves(trainer, args.seeds, args.rounds)
     trainer.close()
+
+
+def group_halves(trainer: ppo.Trainer, seeds: int, rounds: int) -> None:
+    """Prints, for groups of 1 to `seeds` seeds, their collect on device 0 and learn on device 1."""
+    second = jax.devices()[1]
+    collect = jax.jit(devices.map_runs(lambda state: ppo.collect(trainer, state)[0]))
+    learn = jax.jit(devices.map_runs(lambda collected: ppo.learn(trainer, collected)[0]))
+    programs = {}
+    for size in range(1, seeds + 1):
+        state = jax.jit(devices.map_runs(trainer.init))(jax.random.split(jax.random.PRNGKey(size), size))
+        collected = jax.device_put(collect(state), second)
+        programs[("collect", size)] = functools.partial(collect, state)
+        programs[("learn", size)] = functools.partial(learn, collected)
+    times = interleaved(programs, rounds)
+    for size in range(1, seeds + 1):
+        halves = [statistics.median(times[(half, size)]) * 1e3 for half in ("collect", "learn")]
+        print(f"group of {size}: collect on device 0 {halves[0]:6.1f} ms, learn on device 1 {halves[1]:6.1f} ms")
 
 
 if __name__ == "__main__":

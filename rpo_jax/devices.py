@@ -9,13 +9,14 @@ one run's environments split across them (data parallel). Built on `jax.sharding
   are never logged, their parameters never saved, and checkpoints hold the R real runs only (so
   a run can be resumed on another number of devices). A padded device costs no more wall time
   than a full one.
-- epochs (`--split-epochs`): the R runs' rollouts and batches on the first device, where one
-  callback a step steps every run's simulators, and only their minibatch epochs split over the
-  D devices as with runs (padded the same way); the state returns to the first device after
-  every update. For host-side environments on a CPU split into devices (`--cpu-devices`): split
-  by runs, each device's program would step its own share of the simulators through callbacks
-  of its own, on the same cores as the simulators' threads, while the epochs, the update's
-  arithmetic, gain the cores. In one process only.
+- epochs (`--split-epochs`): the R runs in two groups, whose rollouts and batches run on the
+  first device, where one callback a step steps every run of the group's simulators, and whose
+  minibatch epochs run on the other D - 1 devices (split over them as runs are, padded the same
+  way); each group's state returns to the first device after every update. The groups take
+  turns, so one group's epochs overlap the other's rollouts. For host-side environments on a CPU
+  split into devices (`--cpu-devices`): split by runs, each device's program would step its own
+  share of the simulators through callbacks of its own, rollouts and epochs following each other
+  on every device. In one process only.
 - envs (`--shard-envs`): every device holds all R runs and num_envs / D of each run's
   environments; the trainer made with the device axis (`ppo.make_trainer(axis_name=AXIS)`)
   averages gradients over it and merges the normalisers' statistics, so the parameters stay
@@ -58,7 +59,7 @@ PLACEMENTS = ("one device", "runs", "envs", "epochs")
 @dataclasses.dataclass(frozen=True)
 class Placement:
     """How the R runs of one command lie on the devices of `mesh` (None: one device), or with
-    `epochs_mesh`, how their epochs do while their state lies on one device."""
+    `epochs_mesh`, how their epochs do while their state lies on the first device, outside it."""
 
     mesh: Mesh | None
     shard_envs: bool
@@ -72,7 +73,9 @@ class Placement:
 
     @property
     def count(self) -> int:
-        return 1 if self._devices is None else self._devices.size
+        if self.epochs_mesh is not None:
+            return self.epochs_mesh.size + 1
+        return 1 if self.mesh is None else self.mesh.size
 
     @property
     def kind(self) -> str:
@@ -82,9 +85,11 @@ class Placement:
 
     @property
     def padded_runs(self) -> int:
-        """The runs trained: R, or R rounded up to a multiple of the devices when runs (or their
-        epochs) are split."""
-        return self.num_runs if self.kind not in ("runs", "epochs") else -(-self.num_runs // self.count) * self.count
+        """The runs trained: R, or R rounded up to a multiple of the devices when runs are split,
+        or each group's (`run_groups`) to a multiple of the epochs' devices when their epochs are."""
+        if self.kind == "epochs":
+            return sum(-(-size // self.epochs_mesh.size) * self.epochs_mesh.size for size in run_groups(self.num_runs))
+        return self.num_runs if self.kind != "runs" else -(-self.num_runs // self.count) * self.count
 
     def describe(self) -> dict[str, Any]:
         """What config.json and summary.json record of the placement."""
@@ -127,8 +132,36 @@ class Placement:
         return program.lower(placed).compile()
 
     def _split_chunk(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
-        """`chunk_program` of the epochs placement: each update as two compiled programs, the
-        rollouts (`ppo.collect`) on the first device, then the epochs (`ppo.learn`) over the mesh."""
+        """`chunk_program` of the epochs placement. The runs train in two groups (`run_groups`),
+        each update of a group as two compiled programs: its rollouts (`ppo.collect`) on the first
+        device, then its epochs (`ppo.learn`) on the others. The groups take turns, so that one
+        group's epochs run while the other's rollouts do: the simulators' host work and the
+        epochs' arithmetic share the cores rather than following each other."""
+        groups = run_groups(self.num_runs)
+        programs = {size: self._group_update(trainer, size, abstract_state) for size in set(groups)}  # one for equal groups
+        updates = [programs[size] for size in groups]
+
+        @jax.jit
+        def split(state: ppo.TrainState) -> list[ppo.TrainState]:
+            return [jax.tree.map(lambda leaf: leaf[: groups[0]], state), jax.tree.map(lambda leaf: leaf[groups[0] :], state)]
+
+        joined = jax.jit(lambda trees: jax.tree.map(lambda *leaves: jax.numpy.concatenate(leaves), *trees))
+        # As one scan's outputs: [runs, chunk, ...].
+        stacked = jax.jit(lambda outputs: jax.tree.map(lambda *leaves: jax.numpy.stack(leaves, axis=1), *outputs))
+
+        def run_chunk(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
+            states, outputs = split(state), [[] for _ in groups]
+            for _ in range(chunk):
+                for group, update in enumerate(updates):  # dispatched without waiting: the groups overlap
+                    states[group], output = update(states[group])
+                    outputs[group].append(output)
+            return joined(states), joined([stacked(group_outputs) for group_outputs in outputs])
+
+        return run_chunk
+
+    def _group_update(self, trainer: ppo.Trainer, size: int, abstract_state: Any) -> Callable:
+        """One update of `size` runs whose state lies on the first device: state -> (state, output),
+        the epochs padded to a multiple of the other devices and split over them as runs are."""
 
         def collect(state: ppo.TrainState) -> tuple[ppo.Collected, Any]:
             collected, traj = ppo.collect(trainer, state)
@@ -138,25 +171,23 @@ class Placement:
             state, metrics = ppo.learn(trainer, collected)
             return state, (metrics, diagnostics.Diagnostics.of(counts, state, trainer.config))
 
-        collect_program = jax.jit(map_runs(collect)).lower(abstract_state).compile()
-        spread = jax.jit(lambda tree: pad_runs(tree, self.padded_runs), out_shardings=self._sharding())
-        spread_abstract = self._placed_abstract(jax.eval_shape(spread, jax.eval_shape(map_runs(collect), abstract_state)))
-        learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(*spread_abstract).compile()
-        real = jax.jit(lambda tree: jax.tree.map(lambda leaf: leaf[: self.num_runs], tree))
-        # As one scan's outputs: [R, chunk, ...].
-        stacked = jax.jit(lambda outputs: jax.tree.map(lambda *leaves: jax.numpy.stack(leaves, axis=1), *outputs))
-
+        group_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct((size, *leaf.shape[1:]), leaf.dtype), abstract_state)
+        collect_program = jax.jit(map_runs(collect)).lower(group_state).compile()
+        padded = -(-size // self.epochs_mesh.size) * self.epochs_mesh.size
+        pad = jax.jit(lambda tree: pad_runs(tree, padded))
+        learn_abstract = self._placed_abstract(jax.eval_shape(pad, jax.eval_shape(map_runs(collect), group_state)))
+        learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(*learn_abstract).compile()
+        real = jax.jit(lambda tree: jax.tree.map(lambda leaf: leaf[:size], tree))
         first = jax.local_devices()[0]  # where the state lies, as `collect_program` was compiled
 
-        def run_chunk(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
-            outputs = []
-            for _ in range(chunk):
-                learnt = learn_program(*spread(collect_program(state)))
-                state, output = real(jax.device_put(learnt, first))
-                outputs.append(output)
-            return state, stacked(outputs)
+        def update(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
+            # Nothing after the epochs runs on the first device but the transfer back: a program
+            # there would wait for them, and hold up the other group's rollouts behind it.
+            collected = collect_program(state)
+            learnt = learn_program(*jax.device_put(collected if padded == size else pad(collected), self._sharding()))
+            return jax.device_put(learnt if padded == size else real(learnt), first)
 
-        return run_chunk
+        return update
 
     def restart_program(self, trainer: ppo.Trainer) -> Callable[[ppo.TrainState], ppo.TrainState]:
         """Placed state -> the same with fresh episodes in every run (`Trainer.restart_episodes`),
@@ -220,6 +251,12 @@ def map_runs(fn: Callable) -> Callable:
     return mapped
 
 
+def run_groups(num_runs: int) -> tuple[int, int]:
+    """The sizes of the epochs placement's two groups of runs: the first half (rounded up), then the rest."""
+    first = -(-num_runs // 2)
+    return first, num_runs - first
+
+
 def _stacked(tree: Any) -> Any:
     return jax.tree.map(lambda leaf: leaf[None], tree)
 
@@ -261,7 +298,7 @@ def make_placement(
         return Placement(None, False, num_runs)
     chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]
     if split_epochs:
-        return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen), (AXIS,)))
+        return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen[1:]), (AXIS,)))
     return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes)
 
 

@@ -119,8 +119,8 @@ class Processes(CompileCache):
     shard_envs: bool = False
     """split each run's environments over the devices instead (data parallel; num_envs and the minibatch must divide evenly)"""
     split_epochs: bool = False
-    """split only the runs' minibatch epochs over the devices and step all their environments on the first, where one callback
-    then steps every run's simulators: for host-side environments (Gym, DMC) on a CPU made several devices by --cpu-devices"""
+    """step the runs' environments on the first device and run their minibatch epochs on the others, the runs in two groups that
+    take turns so that one's epochs overlap the other's rollout: for host-side environments (Gym, DMC) on --cpu-devices"""
     cpu_devices: int | None = None
     """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
     sweep points train faster on a CPU of several cores); None: JAX's default (one)"""

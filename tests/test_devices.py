@@ -139,24 +139,28 @@ def test_merged_normaliser_statistics_equal_those_of_the_whole_batch(gradients):
     [
         pytest.param(["--num-seeds", "3", "--devices", "2"], marks=pytest.mark.slow),
         ["--devices", "2", "--shard-envs"],
-        ["--num-seeds", "3", "--devices", "2", "--split-epochs"],
+        ["--num-seeds", "3", "--devices", "3", "--split-epochs"],
     ],
     ids=["runs", "envs", "epochs"],
 )
 def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags):
     # Split runs checkpoint the real runs and pad them again (25 s, slow); a data-parallel run
     # checkpoints its stacked state, one slice per device; with --split-epochs the state lies on
-    # the first device, and only each update's epochs are padded and split.
+    # the first device, and only each update's epochs are padded and split: here the runs' two
+    # groups (2 and 1) over the other 2 devices, the second padded to 2.
     result = device_check(tmp_path, "resume", *flags)
     assert result == {"codes": [0, 0], "same_params": True, "same_rows": True, "rows": 4 * (3 if "3" in flags else 1)}
+    if "--split-epochs" in flags:
+        summary = RunDir(tmp_path / "resumed").read_summary()
+        assert (summary["placement"], summary["devices"], summary["padded_runs"]) == ("epochs", 3, 4)
 
 
 HOST = ["--env", "gym/BipedalWalker-v3", "--num-seeds", "2"]  # Box2D simulators on the host
 
 
 def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
-    # Runs split over 2 devices, and with --split-epochs their rollouts on the first device (one
-    # callback for both runs' simulators) and their epochs over both: each within rounding of
+    # Runs split over 2 devices, and with --split-epochs in two groups of one run, each with its
+    # rollouts on the first device and its epochs on the second: each within rounding of
     # the runs on one device (see test_runs_split_over_devices_train_as_on_one_device).
     layouts = {"d1": ["--devices", "1"], "d2": ["--devices", "2"], "epochs": ["--devices", "2", "--split-epochs"]}
     results = device_check(tmp_path, "commands", *(json.dumps([*HOST, *flags, name]) for name, flags in layouts.items()))
