@@ -11,8 +11,9 @@ one run's environments split across them (data parallel). Built on `jax.sharding
   than a full one.
 - epochs (`--split-epochs`): the R runs in two groups, whose rollouts and batches run on the
   first device, where one callback a step steps every run of the group's simulators, and whose
-  minibatch epochs run on the other D - 1 devices (split over them as runs are, padded the same
-  way); each group's state returns to the first device after every update. The groups take
+  minibatch epochs run on the other D - 1 devices (split over them as runs are, each group
+  padded to a multiple of them with copies of its own first run); each group's state returns to
+  the first device after every update. At most R / 2 (rounded up) devices run epochs. The groups take
   turns, so one group's epochs overlap the other's rollouts. For host-side environments on a CPU
   split into devices (`--cpu-devices`): split by runs, each device's program would step its own
   share of the simulators through callbacks of its own, rollouts and epochs following each other
@@ -133,10 +134,11 @@ class Placement:
 
     def _split_chunk(self, trainer: ppo.Trainer, chunk: int, abstract_state: Any) -> Callable:
         """`chunk_program` of the epochs placement. The runs train in two groups (`run_groups`),
-        each update of a group as two compiled programs: its rollouts (`ppo.collect`) on the first
-        device, then its epochs (`ppo.learn`) on the others. The groups take turns, so that one
-        group's epochs run while the other's rollouts do: the simulators' host work and the
-        epochs' arithmetic share the cores rather than following each other."""
+        each update of a group as two compiled programs and the transfers between them: its
+        rollouts (`ppo.collect`) on the first device, then its epochs (`ppo.learn`) on the others.
+        The groups take turns, so that one group's epochs run while the other's rollouts do: the
+        simulators' host work and the epochs' arithmetic share the cores rather than following
+        each other."""
         groups = run_groups(self.num_runs)
         programs = {size: self._group_update(trainer, size, abstract_state) for size in set(groups)}  # one for equal groups
         updates = [programs[size] for size in groups]
@@ -293,7 +295,7 @@ def make_placement(
     if shard_envs:
         check_env_split(config, count * processes)
     elif processes == 1:  # with several, every process must hold runs: they are padded instead
-        count = min(count, num_runs)
+        count = min(count, num_runs if not split_epochs else -(-num_runs // 2) + 1)  # a group's runs fill its epochs' devices
     if count == 1 and processes == 1:
         return Placement(None, False, num_runs)
     chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]

@@ -155,15 +155,17 @@ def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags)
         assert (summary["placement"], summary["devices"], summary["padded_runs"]) == ("epochs", 3, 4)
 
 
-HOST = ["--env", "gym/BipedalWalker-v3", "--num-seeds", "2"]  # Box2D simulators on the host
+HOST = ["--env", "gym/BipedalWalker-v3"]  # Box2D simulators on the host
 
 
 def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
-    # Runs split over 2 devices, and with --split-epochs in two groups of one run, each with its
-    # rollouts on the first device and its epochs on the second: each within rounding of
-    # the runs on one device (see test_runs_split_over_devices_train_as_on_one_device).
-    layouts = {"d1": ["--devices", "1"], "d2": ["--devices", "2"], "epochs": ["--devices", "2", "--split-epochs"]}
-    results = device_check(tmp_path, "commands", *(json.dumps([*HOST, *flags, name]) for name, flags in layouts.items()))
+    # Runs split over 2 devices (padded to 4), and with --split-epochs over 3 in two groups (2 and
+    # 1 runs), each with its rollouts on the first device and its epochs over the other two (the
+    # group of 1 padded to 2): each within rounding of the runs on one device (see
+    # test_runs_split_over_devices_train_as_on_one_device).
+    layouts = {"d1": ["--devices", "1"], "d2": ["--devices", "2"], "epochs": ["--devices", "3", "--split-epochs"]}
+    commands = (json.dumps([*HOST, "--num-seeds", "3", *flags, name]) for name, flags in layouts.items())
+    results = device_check(tmp_path, "commands", *commands)
     assert all(result["code"] == 0 for result in results.values()), results
     for split in ("d2", "epochs"):
         for a, b in zip(params_of(tmp_path / split), params_of(tmp_path / "d1"), strict=True):
@@ -171,7 +173,7 @@ def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
         reference_rows = rows_of(tmp_path / "d1")
         assert [(r["run"], r["update"]) for r in rows_of(tmp_path / split)] == [(r["run"], r["update"]) for r in reference_rows]
     summaries = {split: RunDir(tmp_path / split).read_summary() for split in ("d2", "epochs")}
-    assert [(summary["placement"], summary["devices"]) for summary in summaries.values()] == [("runs", 2), ("epochs", 2)]
+    assert [(summary["placement"], summary["devices"]) for summary in summaries.values()] == [("runs", 2), ("epochs", 3)]
 
 
 @pytest.mark.slow  # 17 s; host-side runs split stay in the test above
@@ -179,7 +181,7 @@ def test_host_side_environments_split_over_devices_train_and_resume(tmp_path):
     # Each device steps a pool of its own (4 of the 8 simulators of each run); a resumed run
     # starts new pools on every device (the simulators are in no checkpoint), so it goes on from
     # the checkpoint's parameters with other episodes, not to the same end.
-    result = device_check(tmp_path, "resume", *HOST, "--devices", "2", "--shard-envs")
+    result = device_check(tmp_path, "resume", *HOST, "--num-seeds", "2", "--devices", "2", "--shard-envs")
     assert result["codes"] == [0, 0] and result["rows"] == 2 * 4
     summary = RunDir(tmp_path / "resumed").read_summary()
     assert (summary["placement"], summary["devices"]) == ("envs", 2)
