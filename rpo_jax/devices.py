@@ -13,11 +13,11 @@ one run's environments split across them (data parallel). Built on `jax.sharding
   first device, where one callback a step steps every run of the group's simulators, and whose
   minibatch epochs run on the other D - 1 devices (split over them as runs are, each group
   padded to a multiple of them with copies of its own first run); each group's state returns to
-  the first device after every update. At most R / 2 (rounded up) devices run epochs. The groups take
-  turns, so one group's epochs overlap the other's rollouts. For host-side environments on a CPU
-  split into devices (`--cpu-devices`): split by runs, each device's program would step its own
-  share of the simulators through callbacks of its own, rollouts and epochs following each other
-  on every device. In one process only.
+  the first device after every update. At most R / 2 (rounded up) devices run epochs. The
+  groups take turns, so one group's epochs overlap the other's rollouts. For host-side
+  environments on a CPU split into devices (`--cpu-devices`): split by runs, each device's
+  program would step its own share of the simulators through callbacks of its own, rollouts and
+  epochs following each other on every device. In one process only.
 - envs (`--shard-envs`): every device holds all R runs and num_envs / D of each run's
   environments; the trainer made with the device axis (`ppo.make_trainer(axis_name=AXIS)`)
   averages gradients over it and merges the normalisers' statistics, so the parameters stay
@@ -89,8 +89,8 @@ class Placement:
         """The runs trained: R, or R rounded up to a multiple of the devices when runs are split,
         or each group's (`run_groups`) to a multiple of the epochs' devices when their epochs are."""
         if self.kind == "epochs":
-            return sum(-(-size // self.epochs_mesh.size) * self.epochs_mesh.size for size in run_groups(self.num_runs))
-        return self.num_runs if self.kind != "runs" else -(-self.num_runs // self.count) * self.count
+            return sum(round_up(size, self.epochs_mesh.size) for size in run_groups(self.num_runs))
+        return self.num_runs if self.kind != "runs" else round_up(self.num_runs, self.count)
 
     def describe(self) -> dict[str, Any]:
         """What config.json and summary.json record of the placement."""
@@ -175,19 +175,20 @@ class Placement:
 
         group_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct((size, *leaf.shape[1:]), leaf.dtype), abstract_state)
         collect_program = jax.jit(map_runs(collect)).lower(group_state).compile()
-        padded = -(-size // self.epochs_mesh.size) * self.epochs_mesh.size
+        padded = round_up(size, self.epochs_mesh.size)
         pad = jax.jit(lambda tree: pad_runs(tree, padded))
         learn_abstract = self._placed_abstract(jax.eval_shape(pad, jax.eval_shape(map_runs(collect), group_state)))
         learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(*learn_abstract).compile()
         real = jax.jit(lambda tree: jax.tree.map(lambda leaf: leaf[:size], tree))
+        if padded == size:  # no copies to add or drop: no program for either
+            pad = real = lambda tree: tree
         first = jax.local_devices()[0]  # where the state lies, as `collect_program` was compiled
 
         def update(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
             # Nothing after the epochs runs on the first device but the transfer back: a program
             # there would wait for them, and hold up the other group's rollouts behind it.
-            collected = collect_program(state)
-            learnt = learn_program(*jax.device_put(collected if padded == size else pad(collected), self._sharding()))
-            return jax.device_put(learnt if padded == size else real(learnt), first)
+            learnt = learn_program(*jax.device_put(pad(collect_program(state)), self._sharding()))
+            return jax.device_put(real(learnt), first)
 
         return update
 
@@ -255,8 +256,13 @@ def map_runs(fn: Callable) -> Callable:
 
 def run_groups(num_runs: int) -> tuple[int, int]:
     """The sizes of the epochs placement's two groups of runs: the first half (rounded up), then the rest."""
-    first = -(-num_runs // 2)
+    first = round_up(num_runs, 2) // 2
     return first, num_runs - first
+
+
+def round_up(count: int, multiple: int) -> int:
+    """`count` rounded up to a multiple of `multiple`: the runs padded to fill `multiple` devices."""
+    return -(-count // multiple) * multiple
 
 
 def _stacked(tree: Any) -> Any:
@@ -295,7 +301,8 @@ def make_placement(
     if shard_envs:
         check_env_split(config, count * processes)
     elif processes == 1:  # with several, every process must hold runs: they are padded instead
-        count = min(count, num_runs if not split_epochs else -(-num_runs // 2) + 1)  # a group's runs fill its epochs' devices
+        # Split epochs: the first device and one per run of the larger group; more would hold only copies.
+        count = min(count, num_runs if not split_epochs else run_groups(num_runs)[0] + 1)
     if count == 1 and processes == 1:
         return Placement(None, False, num_runs)
     chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]
