@@ -5,7 +5,9 @@
 env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random actions, timed
 after a warm-up call, from a state reset beforehand (for a host-side environment, the scan of
 its callback steps). raw_sps (host-side environments only): the same steps on the host
-simulators called directly from Python with numpy actions, no JAX involved. train_sps: the full
+simulators called directly from Python with numpy actions, no JAX involved; with --seeds K,
+seeds_raw_sps is K such pools stepped side by side, against which K seeds' training is set where
+the simulators are the cost. train_sps: the full
 PPO/RPO update (rollout, GAE, epochs of minibatch SGD) with --preset (default `isaacgym`) at
 --num-envs, timed after compilation. compile_seconds: the ahead-of-time compilation of that
 training program.
@@ -26,7 +28,7 @@ import numpy as np
 
 from rpo_jax import envs, ppo
 from rpo_jax.config import PRESETS
-from rpo_jax.envs.host import HostEnv
+from rpo_jax.envs.host import HostEnv, step_side_by_side
 
 
 def best_of(fn, repeats: int) -> float:
@@ -60,21 +62,30 @@ def env_steps_per_second(name: str, num_envs: int, num_steps: int, repeats: int)
     return num_envs * num_steps / best_of(lambda: rollout(state, key), repeats)
 
 
-def raw_host_steps_per_second(env: HostEnv, num_envs: int, num_steps: int, repeats: int) -> float:
-    simulators = env.make_simulators(num_envs, 0)
-    simulators.reset()
+def raw_host_steps_per_second(
+    env: HostEnv, num_envs: int, num_steps: int, repeats: int, num_pools: int = 1
+) -> tuple[float, float]:
+    """Steps/s summed over `num_pools` pools of `num_envs` simulators, each seeded apart, stepped
+    from Python with numpy actions as the trainer's callback steps its runs' pools (side by side),
+    and the cores they kept busy: the process's CPU seconds over the wall seconds of all repeats."""
+    pools = [env.make_simulators(num_envs, seed * num_envs) for seed in range(num_pools)]
+    for pool in pools:
+        pool.reset()
     spec = env.spec
-    actions = (
-        np.random.default_rng(0)
-        .uniform(spec.action_low, spec.action_high, (num_steps, num_envs, spec.action_size))
-        .astype(np.float32)
-    )
+    shape = (num_steps, num_pools, num_envs, spec.action_size)
+    actions = np.random.default_rng(0).uniform(spec.action_low, spec.action_high, shape).astype(np.float32)
 
     def run() -> None:
         for action in actions:
-            simulators.step(action)
+            step_side_by_side(pools, action)
 
-    return num_envs * num_steps / best_of(run, repeats)
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        sps = num_pools * num_envs * num_steps / best_of(run, repeats)
+        return sps, (time.process_time() - cpu) / (time.perf_counter() - wall)
+    finally:
+        for pool in pools:
+            pool.close()
 
 
 def train_steps_per_second(
@@ -100,9 +111,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="cartpole")
     parser.add_argument("--num-envs", type=int, default=1024)
-    parser.add_argument(
-        "--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training"
-    )
+    parser.add_argument("--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training")
     parser.add_argument("--num-steps", type=int, help="rollout length of the timed training (default: the preset's)")
     parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
     parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
@@ -119,18 +128,18 @@ def main() -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
 
-    raw_sps = (
-        raw_host_steps_per_second(env, args.num_envs, args.env_steps, args.repeats)
-        if isinstance(env, HostEnv)
-        else None
+    raw_sps, raw_cores = (
+        raw_host_steps_per_second(env, args.num_envs, args.env_steps, args.repeats) if isinstance(env, HostEnv) else (None, None)
     )
     env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
     training = (args.env, args.preset, args.num_envs, args.num_steps, args.train_updates, args.repeats)
     train_sps, compile_seconds = train_steps_per_second(*training)
-    seeds_sps = (
-        train_steps_per_second(*training, args.seeds)[0]
-        if args.seeds > 1
-        else None
+    seeds_sps = train_steps_per_second(*training, args.seeds)[0] if args.seeds > 1 else None
+    # Where the simulators are the cost, K seeds' training against their K pools stepped alone.
+    seeds_raw_sps, seeds_raw_cores = (
+        raw_host_steps_per_second(env, args.num_envs, args.env_steps, args.repeats, args.seeds)
+        if seeds_sps and raw_sps
+        else (None, None)
     )
     device = jax.devices()[0]
     result = {
@@ -139,6 +148,7 @@ def main() -> int:
         "preset": args.preset,
         "num_steps": args.num_steps,
         "raw_sps": raw_sps,
+        "raw_cores": raw_cores,
         "env_sps": env_sps,
         "train_sps": train_sps,
         "train_to_env_ratio": train_sps / env_sps,
@@ -148,21 +158,39 @@ def main() -> int:
         "seeds_train_sps": seeds_sps,
         # The same steps per seed: K seeds' wall time over one seed's is K * (1-seed sps / K-seed sps).
         "seeds_wall_ratio": args.seeds * train_sps / seeds_sps if seeds_sps else None,
+        "seeds_raw_sps": seeds_raw_sps,
+        "seeds_raw_cores": seeds_raw_cores,
+        "seeds_train_to_raw_ratio": seeds_sps / seeds_raw_sps if seeds_raw_sps else None,
         "device": f"{device.platform}:{device.device_kind}",
         "jax": jax.__version__,
     }
-    raw = f"{raw_sps:>14,.0f}" if raw_sps else f"{'-':>14}"
-    print(f"{'env':<20}{'num_envs':>10}{'raw_sps':>14}{'env_sps':>14}{'train_sps':>14}{'compile_s':>11}  device")
-    print(
-        f"{args.env:<20}{args.num_envs:>10}{raw}{env_sps:>14,.0f}{train_sps:>14,.0f}"
-        f"{compile_seconds:>11.1f}  {result['device']}"
-    )
-    if seeds_sps:
-        ratio = result["seeds_wall_ratio"]
-        print(f"{args.seeds} seeds in one program: {seeds_sps:,.0f} steps/s, wall time {ratio:.2f}x one seed's")
+    report(result)
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     return 0
+
+
+def report(result: dict) -> None:
+    """Prints `result` as a table row and, with several seeds, a line for them."""
+    raw = f"{result['raw_sps']:>14,.0f}" if result["raw_sps"] else f"{'-':>14}"
+    print(f"{'env':<20}{'num_envs':>10}{'raw_sps':>14}{'env_sps':>14}{'train_sps':>14}{'compile_s':>11}  device")
+    print(
+        f"{result['env']:<20}{result['num_envs']:>10}{raw}{result['env_sps']:>14,.0f}{result['train_sps']:>14,.0f}"
+        f"{result['compile_seconds']:>11.1f}  {result['device']}"
+    )
+    if result["raw_sps"]:
+        print(
+            f"one pool stepped alone kept {result['raw_cores']:.2f} cores busy; one seed trains at "
+            f"{result['train_to_raw_ratio']:.2f}x its rate"
+        )
+    seeds, sps = result["seeds"], result["seeds_train_sps"]
+    if sps:
+        print(f"{seeds} seeds in one program: {sps:,.0f} steps/s, wall time {result['seeds_wall_ratio']:.2f}x one seed's")
+    if result["seeds_raw_sps"]:
+        print(
+            f"their {seeds} pools stepped alone, side by side: {result['seeds_raw_sps']:,.0f} steps/s on "
+            f"{result['seeds_raw_cores']:.2f} cores; the {seeds} seeds train at {result['seeds_train_to_raw_ratio']:.2f}x it"
+        )
 
 
 if __name__ == "__main__":
