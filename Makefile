@@ -1,6 +1,7 @@
 # Set-up on a fresh machine: `make train` installs the core and trains the default Cartpole;
 # `make test` installs the `dev` set (every suite, lint, tests) and runs lint and the tests.
-# Another Python: `make test PYTHON=python3.13 VENV=.venv-3.13` (each venv is its own).
+# Another Python: `make test PYTHON=python3.13 VENV=.venv-3.13` (each venv is its own); under pyenv,
+# where `python3.13` runs only in a shell that selected it, name its path: PYTHON=$(pyenv prefix 3.13.0)/bin/python3.13.
 PYTHON ?= $(shell for p in python3.11 python3.12 python3.13 python3; do $$p -c '' 2>/dev/null && command -v $$p && break; done)
 VENV ?= .venv
 # The suite's files spread over this many processes (pytest-xdist), a file's tests in one of them.
@@ -10,6 +11,8 @@ PY := $(VENV)/bin/python
 .PHONY: train test lint docs docs-serve benchmark wheel-check
 
 $(VENV)/.created:
+	@test -x $(PY) || $(PYTHON) -c '' 2>/dev/null || { \
+		echo "make: PYTHON='$(PYTHON)' does not run; name a Python 3.11 to 3.13 that does, e.g. PYTHON=/usr/bin/python3.12" >&2; exit 2; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	touch $@
