@@ -293,6 +293,8 @@ def make_placement(
         raise UsageError("--split-epochs splits the runs' epochs, --shard-envs each run's environments: choose one")
     if split_epochs and processes > 1:
         raise UsageError(f"--split-epochs trains in one process, over its devices; this run has {processes} processes")
+    if split_epochs and num_runs < 2:
+        raise UsageError("--split-epochs needs 2 or more runs (--num-seeds, --sweep) to take turns; this has 1")
     if devices is not None and devices < 1:
         raise UsageError(f"--devices must be >= 1, got {devices}")
     if devices is not None and devices > len(available):
