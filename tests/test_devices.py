@@ -201,7 +201,7 @@ BAD_LAYOUTS = {
     "envs": (["--num-envs", "6", "--shard-envs"], "--shard-envs over 4 devices needs num_envs divisible by 4, got 6"),
     "minibatch": (["--num-envs", "4", "--num-steps", "3", "--shard-envs"], "needs the minibatch"),
     "epochs-envs": (["--split-epochs", "--shard-envs"], "--split-epochs splits the runs' epochs, --shard-envs each run's"),
-    "epochs-one-run": (["--split-epochs"], "--split-epochs needs 2 or more runs (--num-seeds, --sweep) to take turns; this has 1"),
+    "epochs-one-run": (["--split-epochs"], "--split-epochs needs 2 or more runs (--num-seeds, --sweep) to take turns"),
 }
 
 
