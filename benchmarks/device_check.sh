@@ -13,7 +13,8 @@
 # | training steps/s against devices, both placements (more than one device only) | - | benchmarks/scaling.py |
 #
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
-# Writes OUTDIR/<step>.json and .log, OUTDIR/results.json and OUTDIR/results.md (a Markdown table).
+# Writes OUTDIR/<step>.log, .status.json and the step's own .json, OUTDIR/status.txt, OUTDIR/results.json
+# and OUTDIR/results.md (a Markdown table).
 # --cpu-smoke: the same steps at tiny sizes (scaling over the CPU made 2 devices), to check on a CPU
 # that the script works before GPU time is spent on it; its figures mean nothing. Its steps run
 # side by side, as many at a time as there are cores: their time is XLA compiling, on one core each.
@@ -26,11 +27,8 @@ smoke=0
 if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
 out_dir=${1:-${OUT:-./device-check}}
 mkdir -p "$out_dir"
-if [ -n "${PYTHON:-}" ]; then
-    python=$(command -v "$PYTHON") || { echo "error: PYTHON=$PYTHON is not a Python interpreter here" >&2; exit 2; }
-else
-    python=$(command -v .venv/bin/python || command -v python3 || command -v python)
-fi
+source benchmarks/run_step.sh
+python=$(benchmark_python "$PWD") || exit 2
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 
 if [ "$smoke" = 1 ]; then
@@ -50,17 +48,6 @@ else
     lanes=1  # one step at a time: each has the GPU to itself
     scaling=(--num-envs 4096 --runs 8 --updates 10 --repeats 2)
 fi
-
-# run_step NAME SECONDS COMMAND...: runs COMMAND under a time limit, logs it and records its wall time and status.
-run_step() {
-    local name=$1 seconds=$2
-    shift 2
-    local start=$SECONDS
-    timeout "$seconds" "$@" >"$out_dir/$name.log" 2>&1
-    local code=$?
-    echo "{\"step\": \"$name\", \"exit_code\": $code, \"wall_seconds\": $((SECONDS - start))}" >"$out_dir/$name.status.json"
-    echo "$name: exit $code in $((SECONDS - start)) s"
-}
 
 # step NAME SECONDS COMMAND...: run_step, in the background while fewer than $lanes steps run.
 step() {

@@ -11,15 +11,16 @@
 # command line, the library and the loop, each a fresh process. (kernel_profile.py's GPU trace
 # took over 70 s to write: run it apart.)
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
-# Writes OUTDIR/<step>.log and OUTDIR/status.txt. --cpu-smoke: the same steps at 64 environments,
-# one round, to check on a CPU that the script works before GPU time is spent on it.
+# Writes OUTDIR/<step>.log and .status.json and OUTDIR/status.txt. --cpu-smoke: the same steps at
+# 64 environments, one round, to check on a CPU that the script works before GPU time is spent on it.
 # PYTHON and the wheels as for device_check.sh.
 set -uo pipefail
 cd "$(dirname "$0")"
 smoke=0
 if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
 out_dir=$(mkdir -p "${1:-${OUT:-./device-gap}}" && cd "${1:-${OUT:-./device-gap}}" && pwd)
-python=$(command -v "${PYTHON:-../.venv/bin/python}" || command -v python3)
+source run_step.sh
+python=$(benchmark_python "$PWD/..") || exit 2
 export PYTHONPATH="$PWD/..:$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if [ "$smoke" = 1 ]; then
     envs=64; rounds=1; limits=(300 600 300 300); timesteps=$((64 * 32 * 4))
@@ -30,13 +31,6 @@ else
 fi
 variants=("no loss metrics" "no approx_kl, no clip fraction" "actor and critic fused" "all minibatches unrolled"
     "shuffled by jax.random.permutation" "GAE unrolled by 32" "every final observation valued")
-
-run_step() {  # NAME SECONDS COMMAND...
-    local name=$1 seconds=$2 start=$SECONDS
-    shift 2
-    timeout "$seconds" "$@" >"$out_dir/$name.log" 2>&1
-    echo "$name: exit $? in $((SECONDS - start)) s" | tee -a "$out_dir/status.txt"
-}
 
 run_step phases "${limits[0]}" "$python" phases.py --num-envs "$envs" --rounds "$rounds" --json "$out_dir/phases.json"
 run_step ablate "${limits[1]}" "$python" ablate.py --num-envs "$envs" --rounds "$rounds" --variants "${variants[@]}"
