@@ -31,6 +31,7 @@ train: $(VENV)/.core
 
 lint: $(VENV)/.dev
 	$(VENV)/bin/ruff check rpo_jax tests benchmarks
+	$(VENV)/bin/ruff format --check rpo_jax tests benchmarks
 	$(VENV)/bin/lint-imports
 
 # The site in site/, strict: a warning, a broken link or anchor fails the build.

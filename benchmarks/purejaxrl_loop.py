@@ -183,9 +183,7 @@ def make_loop(num_envs: int, timesteps: int, make_env: Callable[[], Any]) -> Loo
     from mujoco_playground import wrapper
 
     env = wrapper.wrap_for_brax_training(make_env(), episode_length=1000)
-    tx = optax.chain(
-        optax.clip_by_global_norm(SETTINGS["max_grad_norm"]), optax.adam(SETTINGS["lr"], eps=SETTINGS["adam_eps"])
-    )
+    tx = optax.chain(optax.clip_by_global_norm(SETTINGS["max_grad_norm"]), optax.adam(SETTINGS["lr"], eps=SETTINGS["adam_eps"]))
     network = ActorCritic(env.action_size, SETTINGS["hidden"])
     return Loop(env, network, tx, num_envs, timesteps // (num_envs * SETTINGS["num_steps"]))
 

@@ -87,7 +87,5 @@ def wrap_for_training(
         raise ValueError(f"num_envs must match the vector environment's {env.num_envs}, got {num_envs}")
     vec = envs.EpisodeStatistics(env)
     vec = envs.ClipAction(vec)
-    vec = envs.NormalizeReward(
-        vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward, axis_name
-    )
+    vec = envs.NormalizeReward(vec, config.gamma, config.reward_clip, config.reward_scale, config.normalize_reward, axis_name)
     return envs.NormalizeObservation(vec, config.obs_clip, enabled=config.normalize_obs, axis_name=axis_name)

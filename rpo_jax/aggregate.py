@@ -104,7 +104,7 @@ def not_estimable(needed: int, unit: str = "seeds") -> str:
 
 
 def interval_text(low: float, high: float, needed: int, digits: int) -> str:
-    """"[low, high]", or why there is no interval (NaN ends) with the seeds it would need."""
+    """The interval as "[low, high]", or why there is none (NaN ends) with the seeds it would need."""
     return not_estimable(needed) if math.isnan(low) else f"[{low:.{digits}f}, {high:.{digits}f}]"
 
 

@@ -48,10 +48,7 @@ class CheckpointDamaged(ValueError):
 def _layout(tree: Any) -> dict[str, tuple[tuple[int, ...], str]]:
     """Leaf name -> (shape, dtype), with orbax's dotted leaf names."""
     leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-    return {
-        jax.tree_util.keystr(path, simple=True, separator="."): (tuple(leaf.shape), str(leaf.dtype))
-        for path, leaf in leaves
-    }
+    return {jax.tree_util.keystr(path, simple=True, separator="."): (tuple(leaf.shape), str(leaf.dtype)) for path, leaf in leaves}
 
 
 def on_host(leaf: Any) -> np.ndarray:
@@ -111,9 +108,7 @@ def _with_empty(restored: Any, abstract_state: Any) -> Any:
     """Puts the zero-size arrays of `abstract_state` back into a tree restored without them."""
     saved = iter(jax.tree.leaves(restored))
     leaves, treedef = jax.tree.flatten(abstract_state)
-    return treedef.unflatten(
-        [jnp.zeros(leaf.shape, leaf.dtype) if _is_empty(leaf) else next(saved) for leaf in leaves]
-    )
+    return treedef.unflatten([jnp.zeros(leaf.shape, leaf.dtype) if _is_empty(leaf) else next(saved) for leaf in leaves])
 
 
 class Checkpointer:
@@ -124,9 +119,7 @@ class Checkpointer:
         options = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
         # Handlers named up front so that a fresh process can read a checkpoint's metadata.
         handlers = {"state": ocp.StandardCheckpointHandler(), "record": ocp.JsonCheckpointHandler()}
-        self.manager = ocp.CheckpointManager(
-            Path(directory).absolute(), options=options, item_handlers=handlers
-        )
+        self.manager = ocp.CheckpointManager(Path(directory).absolute(), options=options, item_handlers=handlers)
 
     def latest_update(self) -> int | None:
         return self.manager.latest_step()

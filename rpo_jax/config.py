@@ -26,7 +26,6 @@ TruncationName = Literal["bootstrap", "terminate"]
 AUGMENTATIONS = ("none", "rad", "drac")
 
 
-
 @dataclasses.dataclass(frozen=True)
 class Algorithm:
     """One row of the algorithm table."""
@@ -227,18 +226,14 @@ def _check_ranges(config: Config) -> None:
         if not getattr(config, name) >= 0:
             raise UsageError(f"{name} must be >= 0, got {getattr(config, name)}")
     if not 0 < config.aug_low <= config.aug_high:
-        raise UsageError(
-            f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {config.aug_low}, {config.aug_high}"
-        )
+        raise UsageError(f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {config.aug_low}, {config.aug_high}")
     if not config.hidden_sizes or min(config.hidden_sizes) <= 0:
         raise UsageError(f"hidden_sizes must be positive integers, got {config.hidden_sizes}")
 
 
 def _check_batch(config: Config) -> None:
     if config.batch_size % config.num_minibatches:
-        raise UsageError(
-            f"num_minibatches must divide num_envs * num_steps = {config.batch_size}, got {config.num_minibatches}"
-        )
+        raise UsageError(f"num_minibatches must divide num_envs * num_steps = {config.batch_size}, got {config.num_minibatches}")
     if config.minibatch_size < 2:
         raise UsageError(
             f"num_minibatches must leave at least 2 samples per minibatch, got "
@@ -246,8 +241,7 @@ def _check_batch(config: Config) -> None:
         )
     if config.batch_size >= INT32_LIMIT:
         raise UsageError(
-            f"num_envs * num_steps must be below 2**31 = {INT32_LIMIT} samples per batch (int32 indices), "
-            f"got {config.batch_size}"
+            f"num_envs * num_steps must be below 2**31 = {INT32_LIMIT} samples per batch (int32 indices), got {config.batch_size}"
         )
     if config.num_updates >= INT32_LIMIT:
         raise UsageError(

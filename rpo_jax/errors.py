@@ -92,7 +92,6 @@ def diverged_failure(error: Diverged) -> int:
     return 1
 
 
-
 class ExitCode:
     """The exit code of a command, set by `command_failures` where the command failed."""
 

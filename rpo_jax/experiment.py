@@ -103,38 +103,33 @@ class Experiment:
     default_timesteps: int = PAPER_TIMESTEPS
 
 
+def per_algorithm(field: str, values: tuple[str, ...]) -> tuple[Job, ...]:
+    """A PPO and an RPO job for each of `values` of the config's `field`, named `<algo>-<value>`."""
+    return tuple(Job(f"{algo}-{value}", algo, ((field, value),)) for value in values for algo in ("ppo", "rpo"))
+
+
 PPO, RPO = Job("ppo", "ppo"), Job("rpo", "rpo")
 EXPERIMENTS: dict[str, Experiment] = {
     "ppo-vs-rpo": Experiment((PPO, RPO), "all"),
     "entropy-reg": Experiment((Job("ppo", "ppo", sweep=("ent_coef", ENTROPY_COEFS)), RPO), "dmc"),
-    "distributions": Experiment(
-        tuple(
-            Job(f"{algo}-{dist}", algo, (("dist", dist),))
-            for dist in ("gaussian", "laplace", "gumbel")
-            for algo in ("ppo", "rpo")
-        ),
-        "dmc",
-    ),
+    "distributions": Experiment(per_algorithm("dist", ("gaussian", "laplace", "gumbel")), "dmc"),
     "data-aug": Experiment((PPO, Job("rad", "rad"), Job("drac", "drac"), RPO), "dmc"),
     "alpha-ablation": Experiment((PPO, Job("rpo", "rpo", sweep=("rpo_alpha", RPO_ALPHAS))), "dmc"),
     "long-horizon": Experiment((PPO, RPO), "isaacgym", default_timesteps=100_000_000),
-    # Time limits bootstrapped from the final observation (rpo_jax's default) against treated as
-    # terminal states (the paper's CleanRL code).
     # RPO's alpha where a fixed 0.5 is reported to fall below PPO, against population-based
     # training over alpha and lr; every member of the population trains as many steps as a seed.
     "pbt-alpha": Experiment(
-        (PPO, Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)), Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)),
-         Job("pbt", "rpo", population=Pbt.population, pbt_fields=Pbt.pbt_fields)),
-        "pbt-alpha",
-    ),  # fmt: skip
-    "truncation": Experiment(
-        tuple(
-            Job(f"{algo}-{handling}", algo, (("truncation", handling),))
-            for handling in ("bootstrap", "terminate")
-            for algo in ("ppo", "rpo")
+        (
+            PPO,
+            Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)),
+            Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)),
+            Job("pbt", "rpo", population=Pbt.population, pbt_fields=Pbt.pbt_fields),
         ),
-        "gym",
+        "pbt-alpha",
     ),
+    # Time limits bootstrapped from the final observation (rpo_jax's default) against treated as
+    # terminal states (the paper's CleanRL code).
+    "truncation": Experiment(per_algorithm("truncation", ("bootstrap", "terminate")), "gym"),
 }
 
 
@@ -391,9 +386,7 @@ def run_jobs(
 
 def progress_line(prefix: str, job: Job, summary: dict) -> str:
     """One run's result: each variant's final return (a sweep's variants are not averaged)."""
-    finals = ", ".join(
-        f"{job.variant(point['hparams'])} {point['final_return_mean']:.2f}" for point in summary["grid"]
-    )
+    finals = ", ".join(f"{job.variant(point['hparams'])} {point['final_return_mean']:.2f}" for point in summary["grid"])
     return f"{prefix}: final return {finals}, {summary['sps']:,.0f} steps/s"
 
 

@@ -181,7 +181,11 @@ def population_returns(
 
 
 def interval_bars(
-    path: Path, title: str, ylabel: str, values: dict[str, tuple[float, float, float, str]], colours: dict,
+    path: Path,
+    title: str,
+    ylabel: str,
+    values: dict[str, tuple[float, float, float, str]],
+    colours: dict,
     runs: dict[str, int],
 ) -> str:
     """One bar per variant at its point estimate, with its interval (low, high) as an error bar

@@ -283,9 +283,7 @@ def resumed_plan(out: Path) -> RunPlan:
             check_pbt(plan["pbt"], config, plan["num_seeds"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
-    placement = make_placement(
-        plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config, plan["split_epochs"]
-    )
+    placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config, plan["split_epochs"])
     resumed = RunPlan(
         out=out, config=config, resuming=True, grid=tuple(grid), placement=placement,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
@@ -415,4 +413,3 @@ def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str
         "trained_with": training_record(plan),
         "versions": versions(),
     }
-

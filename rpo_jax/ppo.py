@@ -267,9 +267,7 @@ def bootstrapped_next_values(critic: Critic, params: dict, traj: Transition, nex
 
     Only a bootstrapped truncation reads the value of a final observation, so the critic's pass
     over all final observations runs only in a rollout where some episode was truncated."""
-    final_values = jax.lax.cond(
-        traj.truncated.any(), lambda: critic.apply(params["critic"], traj.final_obs), lambda: next_values
-    )
+    final_values = jax.lax.cond(traj.truncated.any(), lambda: critic.apply(params["critic"], traj.final_obs), lambda: next_values)
     return jnp.where(traj.truncated, final_values, next_values)
 
 

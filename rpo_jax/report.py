@@ -181,7 +181,6 @@ def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, s
     return scores
 
 
-
 def aggregates(scores: dict, variants: list[str]) -> dict[str, dict]:
     """Per variant over the environments it ran on: the IQM of normalised scores with its
     stratified bootstrap interval (NaN where too few runs) and the seeds per environment that

@@ -230,9 +230,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
         config.num_updates, at_most=min(filter(None, (plan.eval_updates, plan.video_updates, plan.pbt_updates)), default=None)
     )
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray([run["seed"] for run in runs]))
-    hparams = ppo.Hyperparams(
-        **{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE}
-    )
+    hparams = ppo.Hyperparams(**{name: np.asarray([run["hparams"][name] for run in runs], np.float32) for name in SWEEPABLE})
     init = placement.init_program(trainer)
     abstract_state = jax.eval_shape(init, keys, hparams)
     start = time.perf_counter()
@@ -316,6 +314,7 @@ def after_chunk(
 
 class Due(NamedTuple):
     """What falls due after a chunk; each reads the state, and a population step changes it."""
+
     eval: bool
     video: bool
     evolve: bool

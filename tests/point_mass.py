@@ -22,4 +22,4 @@ class PointMass:
         velocity = state[1] + 0.1 * jnp.clip(action[0], -1.0, 1.0)
         state = jnp.stack([state[0] + 0.1 * velocity, velocity])
         terminated = jnp.abs(state[0]) > 2.0
-        return state, envs.TimeStep(state, -state[0] ** 2, terminated, jnp.zeros((), bool), state)
+        return state, envs.TimeStep(state, -(state[0] ** 2), terminated, jnp.zeros((), bool), state)

@@ -26,9 +26,7 @@ TINY = [
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "rpo_jax.train", *args], capture_output=True, text=True, timeout=600
-    )
+    return subprocess.run([sys.executable, "-m", "rpo_jax.train", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")

@@ -118,6 +118,7 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
     saved = json.loads((tampered / "config.json").read_text())
     saved["config"]["hidden_sizes"] = [64, 64]  # the isaacgym preset trained [32, 32]
     (tampered / "config.json").write_text(json.dumps(saved))
+
     def files():  # but the writers' lock, which the refused resume held while it checked
         return sorted((p.relative_to(tampered), p.stat().st_mtime_ns) for p in tampered.rglob("*") if p.name != LOCK_FILE)
 
@@ -286,9 +287,22 @@ def test_experiment_and_train_share_their_flags_by_name():
     assert experiments - trains == {"--suite", "--envs", "--jobs"}
     population = {"--pbt", "--no-pbt", "--population", "--pbt-every", "--pbt-fields", "--pbt-quantile", "--pbt-explore"}
     assert trains - experiments == {"--env", "--resume", *population}
-    for name in ("--num-seeds", "--total-timesteps", "--num-envs", "--num-steps", "--eval-every", "--eval-episodes",
-                 "--cpu-devices", "--quiet", "--out", "--checkpoint-every", "--preset", "--no-compile-cache", "--track",
-                 "--allow-relayout"):
+    for name in (
+        "--num-seeds",
+        "--total-timesteps",
+        "--num-envs",
+        "--num-steps",
+        "--eval-every",
+        "--eval-episodes",
+        "--cpu-devices",
+        "--quiet",
+        "--out",
+        "--checkpoint-every",
+        "--preset",
+        "--no-compile-cache",
+        "--track",
+        "--allow-relayout",
+    ):
         assert name in trains & experiments, name
 
 

@@ -13,9 +13,7 @@ from rpo_jax.config import Config
 
 gymnasium = pytest.importorskip("gymnasium")
 
-SMALL = Config(
-    num_envs=4, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=4 * 32 * 2, rpo_alpha=0.5
-)
+SMALL = Config(num_envs=4, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=4 * 32 * 2, rpo_alpha=0.5)
 
 
 def scan_steps(env, key, actions):

@@ -191,9 +191,7 @@ def test_train_without_the_extra_exits_2_with_one_line(monkeypatch, tmp_path, ca
 
 
 def test_listing_names_every_env_with_its_sizes_without_building_them():
-    result = subprocess.run(
-        [sys.executable, "-m", "rpo_jax.envs"], capture_output=True, text=True, timeout=120, check=True
-    )
+    result = subprocess.run([sys.executable, "-m", "rpo_jax.envs"], capture_output=True, text=True, timeout=120, check=True)
     assert result.stderr == ""
     table = result.stdout.split("\n\n")[0]
     rows = {line.split()[0]: line.split()[1:] for line in table.splitlines()[1:]}

@@ -58,9 +58,7 @@ def finished(processes: list[subprocess.Popen]) -> list[dict]:
     finally:
         for process in processes:
             process.kill()
-    return [
-        {"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)
-    ]
+    return [{"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)]
 
 
 def two_processes(args: list[str], outs: tuple[Path, Path]) -> list[dict]:

@@ -23,7 +23,12 @@ def built_spec(name: str) -> envs.EnvSpec:
 @pytest.mark.parametrize(
     "name",
     [
-        "cartpole", "ballbalance", "gym/Pendulum-v1", "gym/BipedalWalker-v3", "pybullet/Ant", "dmc/walker-walk",
+        "cartpole",
+        "ballbalance",
+        "gym/Pendulum-v1",
+        "gym/BipedalWalker-v3",
+        "pybullet/Ant",
+        "dmc/walker-walk",
         "mjx-dmc/walker-walk",
     ],  # fmt: skip
 )

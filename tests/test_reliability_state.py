@@ -186,7 +186,9 @@ def command_on(command: str, out: Path, tmp_path: Path) -> int:
 @pytest.mark.parametrize(
     "part, changes",
     [
-        ("config", {"dist": "laplace"}), ("config", {"hidden_sizes": [32, 32]}), ("config", {"obs_clip": 5.0}),
+        ("config", {"dist": "laplace"}),
+        ("config", {"hidden_sizes": [32, 32]}),
+        ("config", {"obs_clip": 5.0}),
         (None, {"env": "test/nan_reward"}),
     ],
 )

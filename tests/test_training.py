@@ -14,9 +14,7 @@ from rpo_jax.envs import make_env
 from rpo_jax.ppo import Metrics, make_train, make_trainer
 
 # A few updates of a tiny RPO run (alpha > 0, so the perturbation keys are part of the result).
-TINY = Config(
-    num_envs=8, num_steps=16, num_minibatches=2, update_epochs=2, total_timesteps=8 * 16 * 3, rpo_alpha=0.5
-)
+TINY = Config(num_envs=8, num_steps=16, num_minibatches=2, update_epochs=2, total_timesteps=8 * 16 * 3, rpo_alpha=0.5)
 SEEDS = (0, 1, 2)
 METRIC_FIELDS = tuple(f.name for f in dataclasses.fields(Metrics))
 

@@ -317,9 +317,7 @@ class BallBalance:
 
         action = jnp.clip(action, -1.0, 1.0)
         target = jnp.clip(state.target + CONTROL_DT * ACTION_SPEED * action, self.knee_low, self.knee_high)
-        data = self.data_template.replace(
-            qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart, ctrl=target
-        )
+        data = self.data_template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart, ctrl=target)
         data = mjx.step(self.model, data)
         return BallBalanceState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc, target=target), data
 
@@ -334,9 +332,7 @@ class BallBalance:
 
     def _observe(self, qpos: jax.Array, qvel: jax.Array, sensors: jax.Array) -> jax.Array:
         b, v = self.ball_qpos, self.ball_dof
-        obs = jnp.concatenate(
-            [qpos[self.knee_qpos], qvel[self.knee_dof], qpos[b : b + 3], qvel[v : v + 3], sensors]
-        )
+        obs = jnp.concatenate([qpos[self.knee_qpos], qvel[self.knee_dof], qpos[b : b + 3], qvel[v : v + 3], sensors])
         return jnp.clip(obs, -OBS_CLIP, OBS_CLIP)
 
     @staticmethod

@@ -28,9 +28,7 @@ BRAX_ENVS = tuple(BRAX_SPECS)
 
 def _spec(name: str, observation_size: int, action_size: int, backend: str) -> EnvSpec:
     high = (1.0,) * action_size
-    return EnvSpec(
-        f"brax/{name}", observation_size, action_size, tuple(-h for h in high), high, EPISODE_STEPS, f"brax-{backend}"
-    )
+    return EnvSpec(f"brax/{name}", observation_size, action_size, tuple(-h for h in high), high, EPISODE_STEPS, f"brax-{backend}")
 
 
 SPECS = {f"brax/{name}": _spec(name, *facts) for name, facts in BRAX_SPECS.items()}

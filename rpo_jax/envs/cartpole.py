@@ -119,9 +119,7 @@ class Cartpole:
     def step(self, state: CartpoleState, action: jax.Array) -> tuple[CartpoleState, TimeStep]:
         from rpo_jax.envs.mjx_support import mjx
 
-        data = self.data_template.replace(
-            qpos=state.qpos, qvel=state.qvel, ctrl=jnp.clip(action, -1.0, 1.0)
-        )
+        data = self.data_template.replace(qpos=state.qpos, qvel=state.qvel, ctrl=jnp.clip(action, -1.0, 1.0))
         for _ in range(self.substeps):
             data = mjx.step(self.model, data)
         state = CartpoleState(qpos=data.qpos, qvel=data.qvel)

@@ -78,9 +78,7 @@ class DmcSimulators:
 
         self.env_ids = np.arange(num_envs)
         # envpool seeds env i with seed + i.
-        self.pool = envpool.make_dm(
-            envpool_task_id(task), num_envs=num_envs, num_threads=pool_threads(num_envs), seed=seed
-        )
+        self.pool = envpool.make_dm(envpool_task_id(task), num_envs=num_envs, num_threads=pool_threads(num_envs), seed=seed)
         # The layouts of the lists of arrays that `_send` takes and `_recv` gives, read once.
         self.action_parts = self.pool._from(np.zeros((num_envs, TASKS[task][0])), self.env_ids)
         self.action_index = len(self.action_parts) - 1  # the action comes last, after the env ids

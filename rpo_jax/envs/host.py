@@ -117,9 +117,7 @@ class HostEnv:
     batched environment that the trainer steps (`envs.vectorize` does it for any env).
     `make_drawn`, where the suite can draw, builds one simulator that renders for videos."""
 
-    def __init__(
-        self, spec: EnvSpec, make_simulators: SimulatorFactory, make_drawn: DrawnSimulatorFactory | None = None
-    ) -> None:
+    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, make_drawn: DrawnSimulatorFactory | None = None) -> None:
         self.spec, self.make_simulators, self.make_drawn = spec, make_simulators, make_drawn
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
@@ -162,7 +160,7 @@ class BatchedHostEnv:
         if not batch:  # one run, not vmapped: its pool's outputs are the callback's as they are
             return self.pools[int(handle)].step(action)
         pools = [self.pools[int(h)] for h in handle.reshape(-1)]
-        results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch):]))
+        results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch) :]))
         return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))
 
     def first_observations(self, seed: int = 0) -> np.ndarray:

@@ -20,9 +20,7 @@ from rpo_jax.envs.host import HostEnv, SequentialSimulators
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 
 GYM_IDS = {"Ant": "AntBulletEnv-v0", "Minitaur": "MinitaurBulletEnv-v0"}
-SPECS = {
-    f"pybullet/{name}": EnvSpec(f"pybullet/{name}", 28, 8, (-1.0,) * 8, (1.0,) * 8, 1000, "host") for name in GYM_IDS
-}
+SPECS = {f"pybullet/{name}": EnvSpec(f"pybullet/{name}", 28, 8, (-1.0,) * 8, (1.0,) * 8, 1000, "host") for name in GYM_IDS}
 
 
 @contextlib.contextmanager

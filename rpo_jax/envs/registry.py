@@ -38,9 +38,7 @@ class _Entry:
 _REGISTRY: dict[str, _Entry] = {}
 
 
-def register_env(
-    name: str, factory: Callable[[], Env], spec: EnvSpec | None = None, *, replace: bool = False
-) -> None:
+def register_env(name: str, factory: Callable[[], Env], spec: EnvSpec | None = None, *, replace: bool = False) -> None:
     """Registers `factory` (no arguments; returns a single JAX environment or a host-side one)
     under `name`. With `spec`, listing and `env_spec` use it without building the environment;
     without, `env_spec` builds it once to read its spec. A name already taken raises
@@ -69,8 +67,7 @@ def _entry(name: str) -> _Entry:
         close.append(gymnasium.PREFIX + name.removeprefix("gym/"))  # Gymnasium's tasks beyond the paper's
     hint = f" (did you mean {', '.join(close)}?)" if close else ""
     raise UsageError(
-        f"unknown env {name!r}{hint}; python -m rpo_jax.envs lists them, "
-        "or give an import path package.module:factory"
+        f"unknown env {name!r}{hint}; python -m rpo_jax.envs lists them, or give an import path package.module:factory"
     )
 
 
@@ -219,16 +216,12 @@ register_env("cartpole", cartpole.Cartpole, cartpole.SPEC)
 for _name in brax.BRAX_ENVS:
     register_env(f"brax/{_name}", lambda name=_name: brax.BraxEnv(name), brax.SPECS[f"brax/{_name}"])
 register_env("gym/Pendulum-v1", gym.Pendulum, gym.PENDULUM_SPEC)
-register_env(
-    "gym/BipedalWalker-v3", lambda: gymnasium.make("BipedalWalker-v3", "gym/BipedalWalker-v3"), gym.BIPEDAL_WALKER_SPEC
-)
+register_env("gym/BipedalWalker-v3", lambda: gymnasium.make("BipedalWalker-v3", "gym/BipedalWalker-v3"), gym.BIPEDAL_WALKER_SPEC)
 for _name in pybullet.GYM_IDS:
     register_env(f"pybullet/{_name}", lambda name=_name: pybullet.make(name), pybullet.SPECS[f"pybullet/{_name}"])
 for _task in dmc_tasks.TASKS:
     register_env(f"dmc/{_task}", lambda task=_task: dmc.make(task), dmc.SPECS[f"dmc/{_task}"])
 for _task in dmc_tasks.PLAYGROUND_NAMES:
-    register_env(
-        f"mjx-dmc/{_task}", lambda task=_task: playground.PlaygroundEnv(task), playground.SPECS[f"mjx-dmc/{_task}"]
-    )
+    register_env(f"mjx-dmc/{_task}", lambda task=_task: playground.PlaygroundEnv(task), playground.SPECS[f"mjx-dmc/{_task}"])
 register_env("ballbalance", ballbalance.BallBalance, ballbalance.SPEC)
 del _name, _task

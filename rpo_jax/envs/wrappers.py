@@ -194,9 +194,7 @@ class EpisodeStatistics:
             episode_return=jnp.where(done, episode_return, 0.0),
             episode_length=jnp.where(done, episode_length, 0),
         )
-        state = EpisodeStatisticsState(
-            inner, jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length)
-        )
+        state = EpisodeStatisticsState(inner, jnp.where(done, 0.0, episode_return), jnp.where(done, 0, episode_length))
         return state, ts.replace(info=info)
 
 
@@ -348,9 +346,7 @@ class NormalizeReward:
     paper. The discounted return restarts when an episode ends. With `axis_name`, as in
     `NormalizeObservation`."""
 
-    def __init__(
-        self, env: Env, gamma: float, clip: float, scale: float, normalize: bool, axis_name: str | None = None
-    ) -> None:
+    def __init__(self, env: Env, gamma: float, clip: float, scale: float, normalize: bool, axis_name: str | None = None) -> None:
         self.env, self.spec = env, env.spec
         self.gamma, self.clip, self.scale, self.normalize, self.axis_name = gamma, clip, scale, normalize, axis_name
 
