@@ -9,75 +9,98 @@ callbacks in a jitted `lax.scan` with random actions. Each figure is the median 
 microseconds per step of all `--num-envs` environments. And `envpool, one thread`: the public
 calls on a pool of one thread, the simulators' cost on one core; against `envpool send/recv`
 (as many threads as cores, up to --num-envs), how much of the cores stepping alone keeps busy.
+With `--pools K`, each way steps K pools side by side (every pool started before any is
+collected), the scan vmapped over K runs as the trainer's seeds are: what a step of a group of
+seeds costs, and how the pools' threads share the cores.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+from typing import Callable
 
 import envpool
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from phases import interleaved
 from rpo_jax import envs
-from rpo_jax.envs import dmc
+from rpo_jax.envs import dmc, host
+
+
+def public_pools(task: str, n: int, count: int, threads: int) -> list:
+    """`count` envpool pools of `n` environments and `threads` threads each, reset, seeded apart."""
+    pools = [envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=threads, seed=k * n) for k in range(count)]
+    for pool in pools:
+        pool.reset(np.arange(n))
+    return pools
+
+
+def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, list]:
+    """A call of `steps` random-action steps of `count` runs through the trainer's host callbacks
+    (vmapped over the runs where there are several, as the trainer's seeds are), and the batched
+    environment to close."""
+    batched = envs.make_vector_env(name, n)
+    low, high = jnp.asarray(batched.spec.action_low), jnp.asarray(batched.spec.action_high)
+
+    def scan(state, key):
+        def step(state, key):
+            action = jax.random.uniform(key, (n, batched.spec.action_size), minval=low, maxval=high)
+            state, ts = batched.step(state, action)
+            return state, ts.reward.sum()
+
+        return jax.lax.scan(step, state, jax.random.split(key, steps))[1].sum()
+
+    keys = jax.random.split(jax.random.PRNGKey(0), count)
+    if count == 1:
+        state, program, keys = jax.jit(batched.reset)(keys[0])[0], jax.jit(scan), keys[0]
+    else:
+        state, program = jax.jit(jax.vmap(batched.reset))(keys)[0], jax.jit(jax.vmap(scan))
+    return (lambda: program(state, keys)), [batched]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="dmc/pendulum-swingup", help="a dmc/<domain>-<task> name")
     parser.add_argument("--num-envs", type=int, default=8)
+    parser.add_argument("--pools", type=int, default=1, help="pools stepped side by side, as the trainer steps its seeds'")
     parser.add_argument("--steps", type=int, default=1000, help="steps per timed call")
     parser.add_argument("--rounds", type=int, default=9)
     args = parser.parse_args()
-    n, task = args.num_envs, args.env.removeprefix("dmc/")
-    action_size = dmc.TASKS[task][0]
-    actions = np.random.default_rng(0).uniform(-1, 1, (args.steps, n, action_size)).astype(np.float32)
-    public = envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=dmc.pool_threads(n), seed=0)
-    public.reset(np.arange(n))
-    one_thread = envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=1, seed=0)
-    one_thread.reset(np.arange(n))
-    pools = dmc.DmcSimulators(task, n, 0)
-    pools.reset()
-    batched = envs.make_vector_env(args.env, n)
+    n, k, task = args.num_envs, args.pools, args.env.removeprefix("dmc/")
+    actions = np.random.default_rng(0).uniform(-1, 1, (args.steps, k, n, dmc.TASKS[task][0]))
+    public, one_thread = public_pools(task, n, k, dmc.pool_threads(n)), public_pools(task, n, k, 1)
+    pools = [dmc.DmcSimulators(task, n, j * n) for j in range(k)]
+    for pool in pools:
+        pool.reset()
+    scan, closing = compiled_scan(args.env, n, k, args.steps)
 
-    @jax.jit
-    def scan(state, key):
-        def step(state, key):
-            action = jax.random.uniform(key, (n, action_size), minval=-1.0, maxval=1.0)
-            state, ts = batched.step(state, action)
-            return state, ts.reward.sum()
-
-        return jax.lax.scan(step, state, jax.random.split(key, args.steps))[1].sum()
-
-    state, _ = jax.jit(batched.reset)(jax.random.PRNGKey(0))
-
-    def public_steps(pool=public) -> None:
+    def public_steps(side_by_side: list) -> None:
         for action in actions:
-            pool.send(np.asarray(action, np.float64), np.arange(n))
-            pool.recv()
+            for pool, part in zip(side_by_side, action):
+                pool.send(part, np.arange(n))
+            for pool in side_by_side:
+                pool.recv()
 
     def pool_steps() -> None:
         for action in actions:
-            pools.step(action)
+            host.step_side_by_side(pools, action.astype(np.float32))
 
     programs = {
-        "envpool send/recv": public_steps,
+        "envpool send/recv": lambda: public_steps(public),
         "DmcSimulators.step": pool_steps,
-        "in the compiled scan": lambda: scan(state, jax.random.PRNGKey(1)),
+        "in the compiled scan": scan,
         "envpool, one thread": lambda: public_steps(one_thread),
     }
     times = interleaved(programs, args.rounds)
-    print(f"{args.env}, {n} environments, {args.steps} steps a call, {args.rounds} rounds, {jax.devices()[0]}")
+    print(f"{args.env}, {k} pool(s) of {n} environments, {args.steps} steps a call, {args.rounds} rounds, {jax.devices()[0]}")
     for name, seconds in times.items():
         per_step = [1e6 * s / args.steps for s in seconds]
         print(f"{name:<22} {statistics.median(per_step):8.1f} us a step (min {min(per_step):.1f}, max {max(per_step):.1f})")
-    pools.close()
-    public.close()
-    one_thread.close()
-    batched.close()
+    for pool in [*pools, *public, *one_thread, *closing]:
+        pool.close()
 
 
 if __name__ == "__main__":
