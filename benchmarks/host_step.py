@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
-from typing import Callable
+from typing import Any, Callable
 
 import envpool
 import jax
@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from phases import interleaved
-from rpo_jax import envs
+from rpo_jax import devices, envs
 from rpo_jax.envs import dmc, host
 
 
@@ -38,10 +38,9 @@ def public_pools(task: str, n: int, count: int, threads: int) -> list:
     return pools
 
 
-def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, list]:
+def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, Any]:
     """A call of `steps` random-action steps of `count` runs through the trainer's host callbacks
-    (vmapped over the runs where there are several, as the trainer's seeds are), and the batched
-    environment to close."""
+    (`devices.map_runs`, as the trainer's seeds are), and the batched environment, to close."""
     batched = envs.make_vector_env(name, n)
     low, high = jnp.asarray(batched.spec.action_low), jnp.asarray(batched.spec.action_high)
 
@@ -54,11 +53,8 @@ def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, 
         return jax.lax.scan(step, state, jax.random.split(key, steps))[1].sum()
 
     keys = jax.random.split(jax.random.PRNGKey(0), count)
-    if count == 1:
-        state, program, keys = jax.jit(batched.reset)(keys[0])[0], jax.jit(scan), keys[0]
-    else:
-        state, program = jax.jit(jax.vmap(batched.reset))(keys)[0], jax.jit(jax.vmap(scan))
-    return (lambda: program(state, keys)), [batched]
+    state, program = jax.jit(devices.map_runs(batched.reset))(keys)[0], jax.jit(devices.map_runs(scan))
+    return (lambda: program(state, keys)), batched
 
 
 def main() -> None:
@@ -75,7 +71,7 @@ def main() -> None:
     pools = [dmc.DmcSimulators(task, n, j * n) for j in range(k)]
     for pool in pools:
         pool.reset()
-    scan, closing = compiled_scan(args.env, n, k, args.steps)
+    scan, batched = compiled_scan(args.env, n, k, args.steps)
 
     def public_steps(side_by_side: list) -> None:
         for action in actions:
@@ -99,7 +95,7 @@ def main() -> None:
     for name, seconds in times.items():
         per_step = [1e6 * s / args.steps for s in seconds]
         print(f"{name:<22} {statistics.median(per_step):8.1f} us a step (min {min(per_step):.1f}, max {max(per_step):.1f})")
-    for pool in [*pools, *public, *one_thread, *closing]:
+    for pool in [*pools, *public, *one_thread, batched]:
         pool.close()
 
 

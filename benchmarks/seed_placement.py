@@ -64,12 +64,13 @@ def phases_of(trainer: ppo.Trainer) -> tuple[dict, Callable]:
 
 
 def placed(fn, num_devices: int):
-    """`fn` vmapped over runs, jitted on device 0 or split over a 2-device mesh."""
+    """`fn` over runs as the trainer maps it (`devices.map_runs`: one run unbatched), jitted on
+    device 0 or split over a 2-device mesh."""
     if num_devices == 1:
-        return jax.jit(jax.vmap(fn))
+        return jax.jit(devices.map_runs(fn))
     mesh = Mesh(jax.devices()[:num_devices], (devices.AXIS,))
     spec = PartitionSpec(devices.AXIS)
-    return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False))
+    return jax.jit(jax.shard_map(devices.map_runs(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False))
 
 
 def main() -> None:

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rpo_jax import envs, ppo
+from rpo_jax import devices, envs, ppo
 from rpo_jax.config import PRESETS
 from rpo_jax.envs.host import HostEnv, step_side_by_side
 
@@ -91,16 +91,16 @@ def raw_host_steps_per_second(
 def train_steps_per_second(
     name: str, preset: str, num_envs: int, num_steps: int | None, num_updates: int, repeats: int, num_seeds: int = 1
 ) -> tuple[float, float]:
-    """Training steps/s summed over `num_seeds` seeds trained in one program (vmapped, as
-    `train --num-seeds` does), and the program's compile time."""
+    """Training steps/s summed over `num_seeds` seeds trained in one program (`devices.map_runs`:
+    vmapped, and one seed unbatched, as `train --num-seeds` does), and the program's compile time."""
     config = dataclasses.replace(PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, num_steps=num_steps or config.num_steps)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
     trainer = ppo.make_trainer(config, envs.make_env(name))
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
-    state = jax.jit(jax.vmap(trainer.init))(keys)
+    state = jax.jit(devices.map_runs(trainer.init))(keys)
     start = time.perf_counter()
-    run = jax.jit(jax.vmap(lambda s: trainer.scan_updates(s, num_updates))).lower(state).compile()
+    run = jax.jit(devices.map_runs(lambda s: trainer.scan_updates(s, num_updates))).lower(state).compile()
     compile_seconds = time.perf_counter() - start
     jax.block_until_ready(run(state))  # warm-up
     steps = num_seeds * config.batch_size * num_updates

@@ -14,7 +14,7 @@ import time
 
 import jax
 
-from rpo_jax import envs, loss, ppo
+from rpo_jax import devices, envs, loss, ppo
 from rpo_jax.config import PRESETS
 
 
@@ -42,7 +42,7 @@ def main() -> None:
     batch = jax.jit(jax.vmap(batch_of))(state)
     for seeds in (1, args.seeds):
         inputs = jax.tree.map(lambda x, n=seeds: x[:n], (state, batch))
-        run = jax.jit(jax.vmap(epochs)).lower(*inputs).compile()
+        run = jax.jit(devices.map_runs(epochs)).lower(*inputs).compile()  # one seed unbatched, as the trainer
         jax.block_until_ready(run(*inputs))
         times = []
         for _ in range(args.repeats):
