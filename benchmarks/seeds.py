@@ -3,7 +3,8 @@
     python benchmarks/seeds.py --env cartpole --preset paper --seeds 10 --total-timesteps 204800
 
 Both programs are compiled ahead of time, then each is timed (best of --repeats) on the same
-config; the ratio K-seed time / 1-seed time is the cost of the sweep relative to one run.
+config; the ratio K-seed time / 1-seed time is the cost of the sweep relative to one run. The
+seeds are mapped as the trainer maps runs (`devices.map_runs`): one seed unbatched, K vmapped.
 """
 
 from __future__ import annotations
@@ -17,14 +18,14 @@ from pathlib import Path
 
 import jax
 
-from rpo_jax import envs, ppo
+from rpo_jax import devices, envs, ppo
 from rpo_jax.config import PRESETS, Config
 
 
 def timed_training(config: Config, env: envs.Env, num_seeds: int, repeats: int) -> float:
     train = ppo.make_train(config, env)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
-    compiled = jax.jit(jax.vmap(train)).lower(keys).compile()
+    compiled = jax.jit(devices.map_runs(train)).lower(keys).compile()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
