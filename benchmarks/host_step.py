@@ -9,6 +9,8 @@ callbacks in a jitted `lax.scan` with random actions. Each figure is the median 
 microseconds per step of all `--num-envs` environments. And `envpool, one thread`: the public
 calls on a pool of one thread, the simulators' cost on one core; against `envpool send/recv`
 (as many threads as cores, up to --num-envs), how much of the cores stepping alone keeps busy.
+And `in the scan, no simulators`: the same compiled scan over pools that step nothing (each
+`receive` hands back the same zeros), the cost of the callbacks and the scan themselves.
 With `--pools K`, each way steps K pools side by side (every pool started before any is
 collected), the scan vmapped over K runs as the trainer's seeds are: what a step of a group of
 seeds costs, and how the pools' threads share the cores.
@@ -38,10 +40,33 @@ def public_pools(task: str, n: int, count: int, threads: int) -> list:
     return pools
 
 
-def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, Any]:
-    """A call of `steps` random-action steps of `count` runs through the trainer's host callbacks
-    (`devices.map_runs`, as the trainer's seeds are), and the batched environment, to close."""
-    batched = envs.make_vector_env(name, n)
+class IdleSimulators:
+    """`n` simulators that step nothing: every step hands back the same zeros (`HostSimulators`,
+    split-step, so that several are stepped side by side as envpool's pools are)."""
+
+    def __init__(self, spec: envs.EnvSpec, n: int) -> None:
+        obs, flag = np.zeros((n, spec.observation_size), np.float32), np.zeros(n, bool)
+        self.outputs = (obs, np.zeros(n, np.float32), flag, flag, obs)
+
+    def reset(self) -> np.ndarray:
+        return self.outputs[0]
+
+    def send(self, action: np.ndarray) -> None:
+        pass
+
+    def receive(self) -> tuple[np.ndarray, ...]:
+        return self.outputs
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, ...]:
+        return self.outputs
+
+    def close(self) -> None:
+        pass
+
+
+def compiled_scan(batched: Any, n: int, count: int, steps: int) -> Callable:
+    """A call of `steps` random-action steps of `count` runs of `batched` through the trainer's
+    host callbacks (`devices.map_runs`, as the trainer's seeds are)."""
     low, high = jnp.asarray(batched.spec.action_low), jnp.asarray(batched.spec.action_high)
 
     def scan(state, key):
@@ -54,7 +79,7 @@ def compiled_scan(name: str, n: int, count: int, steps: int) -> tuple[Callable, 
 
     keys = jax.random.split(jax.random.PRNGKey(0), count)
     state, program = jax.jit(devices.map_runs(batched.reset))(keys)[0], jax.jit(devices.map_runs(scan))
-    return (lambda: program(state, keys)), batched
+    return lambda: program(state, keys)
 
 
 def main() -> None:
@@ -71,7 +96,8 @@ def main() -> None:
     pools = [dmc.DmcSimulators(task, n, j * n) for j in range(k)]
     for pool in pools:
         pool.reset()
-    scan, batched = compiled_scan(args.env, n, k, args.steps)
+    batched = envs.make_vector_env(args.env, n)
+    idle = host.BatchedHostEnv(batched.spec, lambda num_envs, seed: IdleSimulators(batched.spec, num_envs), n)
 
     def public_steps(side_by_side: list) -> None:
         for action in actions:
@@ -87,15 +113,16 @@ def main() -> None:
     programs = {
         "envpool send/recv": lambda: public_steps(public),
         "DmcSimulators.step": pool_steps,
-        "in the compiled scan": scan,
+        "in the compiled scan": compiled_scan(batched, n, k, args.steps),
         "envpool, one thread": lambda: public_steps(one_thread),
+        "in the scan, no simulators": compiled_scan(idle, n, k, args.steps),
     }
     times = interleaved(programs, args.rounds)
     print(f"{args.env}, {k} pool(s) of {n} environments, {args.steps} steps a call, {args.rounds} rounds, {jax.devices()[0]}")
     for name, seconds in times.items():
         per_step = [1e6 * s / args.steps for s in seconds]
-        print(f"{name:<22} {statistics.median(per_step):8.1f} us a step (min {min(per_step):.1f}, max {max(per_step):.1f})")
-    for pool in [*pools, *public, *one_thread, batched]:
+        print(f"{name:<26} {statistics.median(per_step):8.1f} us a step (min {min(per_step):.1f}, max {max(per_step):.1f})")
+    for pool in [*pools, *public, *one_thread, batched, idle]:
         pool.close()
 
 
