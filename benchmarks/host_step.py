@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
-from typing import Any, Callable
+from typing import Callable
 
 import envpool
 import jax
@@ -64,7 +64,7 @@ class IdleSimulators:
         pass
 
 
-def compiled_scan(batched: Any, n: int, count: int, steps: int) -> Callable:
+def compiled_scan(batched: envs.BatchedEnv, n: int, count: int, steps: int) -> Callable:
     """A call of `steps` random-action steps of `count` runs of `batched` through the trainer's
     host callbacks (`devices.map_runs`, as the trainer's seeds are)."""
     low, high = jnp.asarray(batched.spec.action_low), jnp.asarray(batched.spec.action_high)

@@ -30,7 +30,7 @@ def built_spec(name: str) -> envs.EnvSpec:
         "pybullet/Ant",
         "dmc/walker-walk",
         "mjx-dmc/walker-walk",
-    ],  # fmt: skip
+    ],
 )
 def test_static_spec_is_the_built_environments(name):
     assert envs.env_spec(name) == built_spec(name)
