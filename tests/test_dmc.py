@@ -143,6 +143,21 @@ def test_the_pools_own_send_and_recv_step_as_envpools_public_api(task):
     assert ended == 3  # every environment's episode ended once, at 1000 steps
 
 
+def test_a_pool_has_no_more_threads_than_the_cores_the_process_may_use(monkeypatch):
+    monkeypatch.setattr(dmc.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(dmc.os, "sched_getaffinity", lambda pid: {2, 3}, raising=False)  # as under `taskset -c 2,3`
+    assert dmc.usable_cores() == 2 and dmc.pool_threads(8) == 2 and dmc.pool_threads(1) == 1
+    monkeypatch.delattr(dmc.os, "sched_getaffinity")  # a platform that cannot say (macOS): the machine's cores
+    assert dmc.usable_cores() == 4 and dmc.pool_threads(8) == 4
+
+
+def test_the_pool_is_built_with_the_threads_chosen():
+    pytest.importorskip("envpool")
+    pool = dmc.DmcSimulators("pendulum-swingup", 8, 0)
+    assert pool.pool.config["num_threads"] == dmc.pool_threads(8)
+    pool.close()
+
+
 def test_stepped_by_the_trainer_same_key_same_episodes_truncated_at_1000():
     pytest.importorskip("envpool")
     env = envs.make_vector_env("dmc/walker-walk", 2)

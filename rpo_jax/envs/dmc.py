@@ -59,9 +59,15 @@ def envpool_task_id(task: str) -> str:
     return f"{camel}-v1"
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (fewer than the machine's under `taskset` or a cgroup's
+    cpuset; the machine's where the platform cannot say)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def pool_threads(num_envs: int) -> int:
-    """envpool's threads for a pool of `num_envs`: more threads than cores only adds switching."""
-    return min(num_envs, os.cpu_count() or 1)
+    """envpool's threads for a pool of `num_envs`: more threads than usable cores only adds switching."""
+    return min(num_envs, usable_cores())
 
 
 class DmcSimulators:
