@@ -151,10 +151,25 @@ def test_a_pool_has_no_more_threads_than_the_cores_the_process_may_use(monkeypat
     assert dmc.usable_cores() == 4 and dmc.pool_threads(8) == 4
 
 
-def test_the_pool_is_built_with_the_threads_chosen():
+def test_a_pool_is_pinned_only_with_a_thread_on_every_core_and_the_cpu_one_device(monkeypatch):
+    monkeypatch.setattr(dmc.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(dmc, "usable_cores", lambda: 4)
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
+    assert dmc.pool_affinity(4) == 0
+    assert dmc.pool_affinity(2) == -1  # half the cores: the OS places the threads of this and other pools
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])  # --cpu-devices 2
+    assert dmc.pool_affinity(4) == -1
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
+    monkeypatch.setattr(dmc, "usable_cores", lambda: 2)  # a process kept to two of the four cores
+    assert dmc.pool_affinity(2) == -1
+
+
+def test_the_pool_is_built_with_the_threads_and_affinity_chosen():
     pytest.importorskip("envpool")
     pool = dmc.DmcSimulators("pendulum-swingup", 8, 0)
-    assert pool.pool.config["num_threads"] == dmc.pool_threads(8)
+    threads = dmc.pool_threads(8)
+    assert pool.pool.config["num_threads"] == threads
+    assert pool.pool.config["thread_affinity_offset"] == dmc.pool_affinity(threads)
     pool.close()
 
 

@@ -27,6 +27,7 @@ import functools
 import os
 from typing import Any
 
+import jax
 import numpy as np
 
 from rpo_jax.envs.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
@@ -70,6 +71,18 @@ def pool_threads(num_envs: int) -> int:
     return min(num_envs, usable_cores())
 
 
+def pool_affinity(threads: int) -> int:
+    """envpool's `thread_affinity_offset` for a pool of `threads` threads: 0 (thread i on core i)
+    where the pool has a thread on every core of the machine and JAX's CPU is one device, else -1
+    (the threads left to the OS). Left to the OS, a pool's threads can share one core for the
+    life of the process: a walker-walk pool of 8 stepped at 11.6k steps/s in some processes and
+    18.5k in others on 2 cores, pinned at 17.9-19.0k in every one. Not where the CPU is split
+    into devices, whose programs run beside the pools: there pinned pools trained five seeds in
+    turns 7% slower (benchmarks/RESULTS.md, "envpool's threads pinned to the cores")."""
+    whole_machine = threads == usable_cores() == (os.cpu_count() or 1)
+    return 0 if whole_machine and len(jax.devices("cpu")) == 1 else -1
+
+
 class DmcSimulators:
     """One envpool pool of `num_envs` copies of a task, auto-reset within the step.
 
@@ -83,8 +96,12 @@ class DmcSimulators:
         import envpool
 
         self.env_ids = np.arange(num_envs)
+        threads = pool_threads(num_envs)
+        affinity = pool_affinity(threads)
         # envpool seeds env i with seed + i.
-        self.pool = envpool.make_dm(envpool_task_id(task), num_envs=num_envs, num_threads=pool_threads(num_envs), seed=seed)
+        self.pool = envpool.make_dm(
+            envpool_task_id(task), num_envs=num_envs, num_threads=threads, thread_affinity_offset=affinity, seed=seed
+        )
         # The layouts of the lists of arrays that `_send` takes and `_recv` gives, read once.
         self.action_parts = self.pool._from(np.zeros((num_envs, TASKS[task][0])), self.env_ids)
         self.action_index = len(self.action_parts) - 1  # the action comes last, after the env ids
