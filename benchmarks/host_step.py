@@ -33,8 +33,13 @@ from rpo_jax.envs import dmc, host
 
 
 def public_pools(task: str, n: int, count: int, threads: int) -> list:
-    """`count` envpool pools of `n` environments and `threads` threads each, reset, seeded apart."""
-    pools = [envpool.make_dm(dmc.envpool_task_id(task), num_envs=n, num_threads=threads, seed=k * n) for k in range(count)]
+    """`count` envpool pools of `n` environments and `threads` threads each, reset, seeded apart;
+    pinned to the cores where rpo_jax's own pools would be (`dmc.pool_affinity`)."""
+    task_id, affinity = dmc.envpool_task_id(task), dmc.pool_affinity(threads)
+    pools = [
+        envpool.make_dm(task_id, num_envs=n, num_threads=threads, thread_affinity_offset=affinity, seed=k * n)
+        for k in range(count)
+    ]
     for pool in pools:
         pool.reset(np.arange(n))
     return pools
