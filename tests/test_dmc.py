@@ -144,11 +144,23 @@ def test_the_pools_own_send_and_recv_step_as_envpools_public_api(task):
 
 
 def test_a_pool_has_no_more_threads_than_the_cores_the_process_may_use(monkeypatch):
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
     monkeypatch.setattr(dmc.os, "cpu_count", lambda: 4)
     monkeypatch.setattr(dmc.os, "sched_getaffinity", lambda pid: {2, 3}, raising=False)  # as under `taskset -c 2,3`
     assert dmc.usable_cores() == 2 and dmc.pool_threads(8) == 2 and dmc.pool_threads(1) == 1
     monkeypatch.delattr(dmc.os, "sched_getaffinity")  # a platform that cannot say (macOS): the machine's cores
     assert dmc.usable_cores() == 4 and dmc.pool_threads(8) == 4
+
+
+def test_a_pool_has_its_share_of_the_cores_where_the_cpu_is_split_into_devices(monkeypatch):
+    monkeypatch.setattr(dmc, "usable_cores", lambda: 4)
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])  # --cpu-devices 2
+    assert dmc.pool_threads(8) == 2 and dmc.pool_threads(1) == 1
+    monkeypatch.setattr(jax, "devices", lambda backend=None: [f"cpu:{i}" for i in range(8)])  # more devices than cores
+    assert dmc.pool_threads(8) == 1
+    monkeypatch.setattr(dmc, "usable_cores", lambda: 2)
+    monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])
+    assert dmc.pool_threads(8) == 1 and dmc.pool_affinity(1) == -1  # one thread, left to the OS
 
 
 def test_a_pool_is_pinned_only_with_a_thread_on_every_core_and_the_cpu_one_device(monkeypatch):
