@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -101,6 +102,31 @@ def test_close_closes_and_drops_every_pool():
     assert env.pools == {} and len(closed) == 6
     env.close()  # nothing left to close
     assert len(closed) == 6
+
+
+def test_a_callback_thread_keeps_its_python_thread_state_from_call_to_call():
+    # threading.local lives in the thread state: a state built and freed at every call (as
+    # PyGILState_Ensure/Release do for XLA's threads) would start every call from empty.
+    local, counts = threading.local(), []
+
+    class CountingSim(PointMassSim):
+        def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+            local.calls = getattr(local, "calls", 0) + 1
+            counts.append((threading.get_ident(), local.calls))
+            return super().step(action)
+
+    env = envs.vectorize(
+        HostEnv(SPEC, lambda n, seed: SequentialSimulators(n, seed, CountingSim, lambda s: s.reset(), lambda s, a: s.step(a))),
+        1,
+    )
+    # Long enough that XLA runs it on a thread of its own, not inline on this one.
+    rollout(env, jax.random.PRNGKey(0), jax.random.uniform(jax.random.PRNGKey(1), (1000, 1, 1)))
+    env.close()
+    threads = {thread for thread, _ in counts}
+    assert len(counts) == 1000 and threading.get_ident() not in threads
+    for thread in threads:
+        calls = [calls for t, calls in counts if t == thread]
+        assert calls == list(range(1, len(calls) + 1))
 
 
 def test_copying_callbacks_for_other_devices_give_the_same_episodes():

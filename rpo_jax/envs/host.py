@@ -16,6 +16,8 @@ the host function XLA's own buffers: the inputs are read and the outputs written
 `io_callback`, used on other devices because it copies the arrays to the host, also copies
 every argument into a new JAX array before the call; on a 2-core CPU that costs about 200 us
 per step, nearly as much as a DeepMind Control walker step, against about 10 us in place.
+XLA calls them from threads of its own, not Python's: each such thread keeps one Python thread
+state for its life (`keep_thread_state`) instead of a new one per call.
 
 No checkpoint holds the simulators, so a resumed run starts fresh episodes in new pools
 (`ppo.Trainer.restart_episodes`).
@@ -27,7 +29,9 @@ as truncations.
 
 from __future__ import annotations
 
+import ctypes
 import itertools
+import threading
 from typing import Callable, Protocol
 
 import jax
@@ -74,6 +78,24 @@ def step_side_by_side(pools: list[HostSimulators], actions: np.ndarray) -> list[
             pool.send(action)
         return [pool.receive() for pool in pools]
     return [pool.step(action) for pool, action in zip(pools, actions)]
+
+
+_threads_kept: set[int] = set()
+
+
+def keep_thread_state() -> None:
+    """Keeps the calling thread's Python thread state alive after this call returns.
+
+    A callback from one of XLA's threads enters Python through `PyGILState_Ensure` and leaves
+    through `PyGILState_Release`, which builds a thread state and frees it at every call; its
+    frame stack (16 KiB, mapped and unmapped each time) made every step unmap memory and flush
+    the other cores' TLBs. One `PyGILState_Ensure` never released keeps it for the thread's life:
+    a step of a pendulum-swingup pool in the compiled scan fell from 133-136 to 105-106 us
+    (benchmarks/RESULTS.md, "A Python thread state a callback")."""
+    thread = threading.get_ident()
+    if thread not in _threads_kept:  # under the GIL: no other thread changes the set meanwhile
+        ctypes.pythonapi.PyGILState_Ensure()
+        _threads_kept.add(thread)
 
 
 # (num_envs, seed) -> a fresh pool whose randomness follows from seed alone.
@@ -188,6 +210,7 @@ class BatchedHostEnv:
         if not self.in_place:
 
             def copying(*arrays: jax.Array) -> tuple[np.ndarray, ...]:
+                keep_thread_state()
                 results = host_fn(*(np.asarray(array) for array in arrays))
                 return tuple(np.asarray(result, shape.dtype) for result, shape in zip(results, shapes))
 
@@ -195,6 +218,7 @@ class BatchedHostEnv:
             return io_callback(copying, shapes, *args)
 
         def in_place(ctx: object, out: tuple, *buffers: object) -> None:
+            keep_thread_state()
             # Copies of the inputs: XLA may reuse their buffers once the callback returns.
             results = host_fn(*(np.asarray(buffer).copy() for buffer in buffers))
             for buffer, result in zip(out, results):
