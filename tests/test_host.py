@@ -284,6 +284,28 @@ def test_runs_vmapped_over_seeds_step_their_pools_side_by_side():
             np.testing.assert_array_equal(x, y[run])
 
 
+def test_runs_in_a_grid_each_get_their_own_results():
+    # Seeds by sweep points: two levels of vmap, so one callback steps a [2, 3] grid of pools and
+    # writes each pool's results at its own place in the grid.
+    env = envs.vectorize(host_point_mass(), 2)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in range(6)]).reshape(2, 3, -1)
+    actions = jnp.linspace(-1, 1, 2 * EPISODE * 2).reshape(2 * EPISODE, 2, 1)
+
+    @jax.jit
+    @jax.vmap
+    @jax.vmap
+    def grid(key):
+        state, _ = env.reset(key)
+        return jax.lax.scan(env.step, state, actions)[1]
+
+    together = grid(keys)
+    for i, j in np.ndindex(2, 3):
+        alone = rollout(env, keys[i, j], actions)[1]
+        for x, y in zip(jax.tree.leaves(alone), jax.tree.leaves(together), strict=True):
+            np.testing.assert_array_equal(x, y[i, j])
+    assert len({tuple(np.asarray(obs).ravel()) for obs in together.obs.reshape(6, -1)}) == 6
+
+
 def rollout_runs(env, keys, actions):
     @jax.jit
     @jax.vmap

@@ -164,26 +164,35 @@ class BatchedHostEnv:
         self.reset_shapes = (jax.ShapeDtypeStruct((), jnp.int32), obs)
         self.step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
 
-    def _host_reset(self, seed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _host_reset(self, out: tuple[np.ndarray, ...], seed: np.ndarray) -> None:
         handle = next(self.handles)
         pool = self.make_simulators(self.num_envs, int(seed))
         self.pools[handle] = pool
-        return np.asarray(handle, np.int32), pool.reset()
+        out[0][...], out[1][...] = handle, pool.reset()
 
-    def _host_step(self, handle: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, ...]:
-        """handle [*runs] and action [*runs, N, act]: under `jax.vmap` the runs' steps arrive in
-        one call (`runs` empty without it), and their pools are stepped side by side."""
+    def _host_step(self, out: tuple[np.ndarray, ...], handle: np.ndarray, action: np.ndarray) -> None:
+        """handle [*runs] and action [*runs, N, act] -> `out` (obs, reward, terminated, truncated,
+        final_obs), each [*runs, ...]: under `jax.vmap` the runs' steps arrive in one call (`runs`
+        empty without it), and their pools are stepped side by side. Each pool's results are
+        written straight into `out`, not stacked first: the scan's own cost a step of five pools
+        fell from 36 to 22 us (benchmarks/RESULTS.md, "The pools' results written in place")."""
         batch = handle.shape
         if self.closed and all(int(h) in self.closed for h in handle.reshape(-1)):
             # A program still running when its pools were closed (the last chunk of an interrupted
             # run, on another device): its results are thrown away, so it steps nothing, and
             # ends without an error that JAX would print at exit.
-            return tuple(np.zeros((*batch, *shape.shape), shape.dtype) for shape in self.step_shapes)
-        if not batch:  # one run, not vmapped: its pool's outputs are the callback's as they are
-            return self.pools[int(handle)].step(action)
+            for array in out:
+                array[...] = 0
+            return
+        if not batch:  # one run, not vmapped: no reshaping, which costs a one-pool step 4 us
+            for array, part in zip(out, self.pools[int(handle)].step(action)):
+                array[...] = part
+            return
         pools = [self.pools[int(h)] for h in handle.reshape(-1)]
         results = step_side_by_side(pools, action.reshape(-1, *action.shape[len(batch) :]))
-        return tuple(np.stack(parts).reshape(*batch, *parts[0].shape) for parts in zip(*results))
+        for run, result in zip(np.ndindex(*batch), results):  # handle.reshape(-1)'s order
+            for array, part in zip(out, result):
+                array[run] = part
 
     def first_observations(self, seed: int = 0) -> np.ndarray:
         """The first observations [num_envs, obs] of a fresh pool, reset once on the host and
@@ -203,16 +212,18 @@ class BatchedHostEnv:
             pool.close()
 
     def _call(
-        self, host_fn: Callable[..., tuple], shapes: tuple, *args: jax.Array, vmap_method: str = "sequential"
+        self, host_fn: Callable[..., None], shapes: tuple, *args: jax.Array, vmap_method: str = "sequential"
     ) -> tuple[jax.Array, ...]:
-        """`host_fn` (numpy arrays in, a tuple of them out) called from the compiled program;
-        under `jax.vmap`, once per run ("sequential") or once for all ("broadcast_all")."""
+        """`host_fn(out, *inputs)` (numpy arrays; it fills the arrays of `out`, one per shape)
+        called from the compiled program; under `jax.vmap`, once per run ("sequential") or once
+        for all ("broadcast_all")."""
         if not self.in_place:
 
             def copying(*arrays: jax.Array) -> tuple[np.ndarray, ...]:
                 keep_thread_state()
-                results = host_fn(*(np.asarray(array) for array in arrays))
-                return tuple(np.asarray(result, shape.dtype) for result, shape in zip(results, shapes))
+                out = tuple(np.empty(shape.shape, shape.dtype) for shape in shapes)
+                host_fn(out, *(np.asarray(array) for array in arrays))
+                return out
 
             # io_callback has no batched form: under vmap it is called once per run.
             return io_callback(copying, shapes, *args)
@@ -220,9 +231,7 @@ class BatchedHostEnv:
         def in_place(ctx: object, out: tuple, *buffers: object) -> None:
             keep_thread_state()
             # Copies of the inputs: XLA may reuse their buffers once the callback returns.
-            results = host_fn(*(np.asarray(buffer).copy() for buffer in buffers))
-            for buffer, result in zip(out, results):
-                np.asarray(buffer)[...] = result
+            host_fn(tuple(np.asarray(buffer) for buffer in out), *(np.asarray(buffer).copy() for buffer in buffers))
 
         # The side effect keeps XLA from dropping or merging calls.
         return buffer_callback(in_place, shapes, has_side_effect=True, vmap_method=vmap_method)(*args)
