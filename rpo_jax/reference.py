@@ -1,6 +1,7 @@
 """A published reference run set beside an experiment: its figures read from a CSV kept in the
 project (benchmarks/reference/), and for each task and algorithm whether the published mean lies
-inside our 95% interval, for the training return and for the deterministic evaluation."""
+inside our 95% interval, for the training return and for the deterministic evaluation, and
+Welch's test of our training returns against the published mean and spread."""
 
 from __future__ import annotations
 
@@ -52,6 +53,21 @@ def inside(published: Published, stats: dict, field: str) -> str:
     return "yes" if low <= published.mean <= high else "no"
 
 
+def welch_p(published: Published, stats: dict) -> str:
+    """The two-sided p-value of Welch's t-test between our seeds' final training returns and the
+    reference's (its std read as a sample std); '' with under 2 seeds on either side.
+
+    'In CI' holds the reference's mean to our interval alone, as if it were exact; this test also
+    counts the reference's own spread over its seeds, which 5 seeds of ours cannot ignore."""
+    if stats["seeds"] < 2 or published.seeds < 2:
+        return ""
+    from scipy import stats as distributions
+
+    ours = stats["return_mean"], stats["return_std"], stats["seeds"]
+    test = distributions.ttest_ind_from_stats(*ours, published.mean, published.std, published.seeds, equal_var=False)
+    return "n/a" if math.isnan(test.pvalue) else f"{test.pvalue:.3f}"
+
+
 def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[str, str], cell) -> list[str]:
     """The report's comparison: a row per (env, variant) whose algorithm the reference has.
     `cell(stats, field)` formats our mean ± std [interval] as the report's other tables do."""
@@ -63,7 +79,7 @@ def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[
         evaluated = "eval_mean" in stats
         rows.append(
             f"| {env} | {variant} | {stats['seeds']} | {int(stats['env_steps']):,} | {cell(stats, 'return')} "
-            f"| {inside(published, stats, 'return')} | {cell(stats, 'eval') if evaluated else ''} "
+            f"| {inside(published, stats, 'return')} | {welch_p(published, stats)} | {cell(stats, 'eval') if evaluated else ''} "
             f"| {inside(published, stats, 'eval') if evaluated else ''} "
             f"| {published.mean:.2f} ± {published.std:.2f} | {published.seeds} | {published.budget:,} |"
         )
@@ -75,12 +91,15 @@ def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[
         "",
         "Ours: the final training return (as in the tables above) and the deterministic evaluation at "
         "the end, mean ± sample std over seeds [95% CI]; 'in CI' says whether the reference's mean lies "
-        "inside that interval. The reference: mean ± std over its seeds, as published "
+        "inside that interval; 'Welch p' is the two-sided p-value of Welch's t-test between our seeds' "
+        "training returns and the reference's mean ± std over its seeds (its std read as a sample std), "
+        "which counts the reference's spread as well as ours: a 'no' with p above 0.05 is a difference "
+        "the seeds cannot tell from chance. The reference: mean ± std over its seeds, as published "
         f"({'; '.join(sources)}).",
         "",
-        "| env | variant | seeds | steps | training return | in CI | evaluation return | in CI "
+        "| env | variant | seeds | steps | training return | in CI | Welch p | evaluation return | in CI "
         "| reference | ref. seeds | ref. steps |",
-        "|---" * 11 + "|",
+        "|---" * 12 + "|",
         *rows,
         "",
     ]

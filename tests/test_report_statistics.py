@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from rpo_jax import aggregate, report
 
@@ -95,6 +96,29 @@ def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table
     assert "| 250.00 ± 129.10 [" in lines["rpo"] and "| yes |" in lines["rpo"] and "260.00 ± 30.00 | 10 | 1,000 |" in lines["rpo"]
     assert "| no |" in lines["ppo"] and "| yes |" not in lines["ppo"]
     assert "--reference" in text and "cartpole | rpo" not in text.split("## Beside the published reference")[1].split("##")[0]
+
+
+def welch_by_hand(ours: np.ndarray, mean: float, std: float, n: int) -> float:
+    """The two-sided p of Welch's t-test, from its formula: t over the two standard errors,
+    Welch-Satterthwaite's degrees of freedom."""
+    a, b = ours.var(ddof=1) / len(ours), std**2 / n
+    t = (ours.mean() - mean) / np.sqrt(a + b)
+    df = (a + b) ** 2 / (a**2 / (len(ours) - 1) + b**2 / (n - 1))
+    return 2 * stats.t.sf(abs(t), df)
+
+
+def test_welchs_test_counts_the_references_spread_beside_ours(table, tmp_path):
+    rows, _, _ = table
+    (tmp_path / "exp").mkdir()
+    report.write_results(tmp_path / "exp", rows)
+    (tmp_path / "ref.csv").write_text(REFERENCE_CSV.replace("260.0,30.0", "420.0,400.0"))
+    text = report.build(tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    lines = {line.split(" | ")[1]: line.split(" | ") for line in text.splitlines() if line.startswith("| dmc/walker-walk | ")}
+    # RPO's seeds 100..400 (mean 250) keep 420 out of their interval, but the reference's own
+    # spread (400 over 10 seeds) leaves the difference inside chance: p above 0.05.
+    expected = welch_by_hand(np.array([100.0, 200.0, 300.0, 400.0]), 420.0, 400.0, 10)
+    assert lines["rpo"][5] == "no" and expected > 0.1 and lines["rpo"][6] == f"{expected:.3f}"
+    assert float(lines["ppo"][6]) < 0.001  # 0..100 against 900 ± 30
 
 
 @pytest.mark.parametrize(
