@@ -1,9 +1,10 @@
 """Time of the minibatch epochs alone (`ppo.minibatch_epochs`), one seed against K seeds vmapped.
 
-    python benchmarks/update_epochs.py --env dmc/pendulum-swingup --num-envs 8 --num-steps 256 --seeds 5
+    python benchmarks/update_epochs.py --env dmc/pendulum-swingup --num-envs 8 --num-steps 256 --seeds 2 5 10 20
 
 The batch comes from one real rollout of each seed; the epochs program is compiled ahead of time
-for each count of seeds and timed (best of --repeats): how the update alone scales with seeds.
+for one seed and each count of seeds and timed (best of --repeats): how the update alone scales
+with seeds, and what one more seed costs where many share the program.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ def main() -> None:
     parser.add_argument("--preset", default="paper", choices=sorted(PRESETS))
     parser.add_argument("--num-envs", type=int, default=8)
     parser.add_argument("--num-steps", type=int, default=256)
-    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[5], help="counts of seeds set against one")
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
     config = dataclasses.replace(PRESETS[args.preset], num_envs=args.num_envs, num_steps=args.num_steps, rpo_alpha=0.5)
     config = dataclasses.replace(config, total_timesteps=config.batch_size)
     trainer = ppo.make_trainer(config, envs.make_env(args.env))
-    state = jax.jit(jax.vmap(trainer.init))(jax.random.split(jax.random.PRNGKey(0), args.seeds))
+    counts = sorted({1, *args.seeds})
+    state = jax.jit(jax.vmap(trainer.init))(jax.random.split(jax.random.PRNGKey(0), counts[-1]))
 
     def batch_of(s: ppo.TrainState) -> loss.Batch:
         traj = ppo.rollout(trainer, s.params, s.env_state, s.obs, s.key)[2]
@@ -40,7 +42,8 @@ def main() -> None:
         return ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, batch, s.key)
 
     batch = jax.jit(jax.vmap(batch_of))(state)
-    for seeds in (1, args.seeds):
+    one_seed = None
+    for seeds in counts:
         inputs = jax.tree.map(lambda x, n=seeds: x[:n], (state, batch))
         run = jax.jit(devices.map_runs(epochs)).lower(*inputs).compile()  # one seed unbatched, as the trainer
         jax.block_until_ready(run(*inputs))
@@ -49,7 +52,9 @@ def main() -> None:
             start = time.perf_counter()
             jax.block_until_ready(run(*inputs))
             times.append(time.perf_counter() - start)
-        print(f"{args.env}: {seeds} seed(s), minibatch epochs {min(times) * 1e3:.1f} ms per update")
+        one_seed = one_seed or min(times)
+        print(f"{args.env}: {seeds} seed(s), minibatch epochs {min(times) * 1e3:.1f} ms per update, "
+              f"{min(times) / seeds * 1e3:.1f} ms a seed ({min(times) / one_seed:.2f}x one seed's)")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -240,6 +240,13 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
     return written
 
 
+def _command(directories: Sequence[Path], out: Path, reference_file: Path | None = None) -> str:
+    """The command that writes this report, `--out` named where it is not the one directory's default."""
+    words = ["python -m rpo_jax.report", *map(str, directories)]
+    words += [] if list(directories) == [out] else [f"--out {out}"]
+    return " ".join(words + ([f"--reference {reference_file}"] if reference_file else []))
+
+
 def build(out: Path, directories: Sequence[Path], reference_file: Path | None = None) -> Path:
     """Writes out/report.md and out/figures/ from the results in `directories`, beside the
     published figures in `reference_file` where given."""
@@ -269,8 +276,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     lines = [
         f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
         "",
-        f"Made by `python -m rpo_jax.report {' '.join(str(d) for d in directories)}"
-        f"{f' --reference {reference_file}' if reference_file else ''}` from results.csv "
+        f"Made by `{_command(directories, out, reference_file)}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} "
         f"{'seed(s) or population(s)' if jobs else 'seed(s)'} each, "
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
@@ -359,7 +365,7 @@ def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None)
     lines = [
         f"{REPORT_TITLE}{'run' if len(run_dirs) == 1 else 'runs'} of {title}",
         "",
-        f"Made by `python -m rpo_jax.report {holder or ' '.join(str(run_dir.path) for run_dir in run_dirs)}` "
+        f"Made by `{_command([holder] if holder else [run_dir.path for run_dir in run_dirs], out)}` "
         f"from metrics.jsonl ({'; '.join(counts)}).",
         "",
         f"| runs | {'seeds or populations' if jobs else 'seeds'} | final return (mean ± sample std [95% CI]) |",

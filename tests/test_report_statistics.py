@@ -98,6 +98,20 @@ def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table
     assert "--reference" in text and "cartpole | rpo" not in text.split("## Beside the published reference")[1].split("##")[0]
 
 
+def test_the_made_by_line_is_the_command_that_wrote_the_report(table, tmp_path):
+    rows, _, _ = table
+    (tmp_path / "exp").mkdir()
+    report.write_results(tmp_path / "exp", rows)
+    (tmp_path / "ref.csv").write_text(REFERENCE_CSV)
+    text = report.build(tmp_path / "out", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    named = text.split("Made by `")[1].split("`")[0]
+    assert named == f"python -m rpo_jax.report {tmp_path / 'exp'} --out {tmp_path / 'out'} --reference {tmp_path / 'ref.csv'}"
+    (tmp_path / "out" / "report.md").unlink()
+    assert report.main(named.split()[3:]) == 0 and (tmp_path / "out" / "report.md").read_text() == text
+    alone = report.build(tmp_path / "exp", [tmp_path / "exp"]).read_text()
+    assert f"Made by `python -m rpo_jax.report {tmp_path / 'exp'}` from" in alone
+
+
 def welch_by_hand(ours: np.ndarray, mean: float, std: float, n: int) -> float:
     """The two-sided p of Welch's t-test, from its formula: t over the two standard errors,
     Welch-Satterthwaite's degrees of freedom."""
