@@ -1,6 +1,7 @@
 """The report's statistics against hand computations on a small fixed table."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,12 +86,17 @@ dmc/walker-walk,ppo,900.0,30.0,10,1000,paper
 """
 
 
-def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table, tmp_path):
-    rows, _, _ = table
+def built_with_reference(table, tmp_path: Path, reference_csv: str, out: Path | None = None) -> Path:
+    """The report of `table`'s rows in tmp_path/exp, written to `out` (default: that directory),
+    beside the published figures of `reference_csv` in tmp_path/ref.csv."""
     (tmp_path / "exp").mkdir()
-    report.write_results(tmp_path / "exp", rows)
-    (tmp_path / "ref.csv").write_text(REFERENCE_CSV)
-    text = report.build(tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    report.write_results(tmp_path / "exp", table[0])
+    (tmp_path / "ref.csv").write_text(reference_csv)
+    return report.build(out or tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv")
+
+
+def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table, tmp_path):
+    text = built_with_reference(table, tmp_path, REFERENCE_CSV).read_text()
     lines = {line.split(" | ")[1]: line for line in text.splitlines() if line.startswith("| dmc/walker-walk | ")}
     # RPO's seeds 100..400 put 260 inside their interval around 250; PPO's 0..100 keep 900 out.
     assert "| 250.00 ± 129.10 [" in lines["rpo"] and "| yes |" in lines["rpo"] and "260.00 ± 30.00 | 10 | 1,000 |" in lines["rpo"]
@@ -99,11 +105,7 @@ def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table
 
 
 def test_the_made_by_line_is_the_command_that_wrote_the_report(table, tmp_path):
-    rows, _, _ = table
-    (tmp_path / "exp").mkdir()
-    report.write_results(tmp_path / "exp", rows)
-    (tmp_path / "ref.csv").write_text(REFERENCE_CSV)
-    text = report.build(tmp_path / "out", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    text = built_with_reference(table, tmp_path, REFERENCE_CSV, tmp_path / "out").read_text()
     named = text.split("Made by `")[1].split("`")[0]
     assert named == f"python -m rpo_jax.report {tmp_path / 'exp'} --out {tmp_path / 'out'} --reference {tmp_path / 'ref.csv'}"
     (tmp_path / "out" / "report.md").unlink()
@@ -122,11 +124,7 @@ def welch_by_hand(ours: np.ndarray, mean: float, std: float, n: int) -> float:
 
 
 def test_welchs_test_counts_the_references_spread_beside_ours(table, tmp_path):
-    rows, _, _ = table
-    (tmp_path / "exp").mkdir()
-    report.write_results(tmp_path / "exp", rows)
-    (tmp_path / "ref.csv").write_text(REFERENCE_CSV.replace("260.0,30.0", "420.0,400.0"))
-    text = report.build(tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv").read_text()
+    text = built_with_reference(table, tmp_path, REFERENCE_CSV.replace("260.0,30.0", "420.0,400.0")).read_text()
     lines = {line.split(" | ")[1]: line.split(" | ") for line in text.splitlines() if line.startswith("| dmc/walker-walk | ")}
     # RPO's seeds 100..400 (mean 250) keep 420 out of their interval, but the reference's own
     # spread (400 over 10 seeds) leaves the difference inside chance: p above 0.05.
