@@ -24,6 +24,7 @@ import csv
 import dataclasses
 import io
 import math
+import shlex
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -241,10 +242,11 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
 
 
 def _command(directories: Sequence[Path], out: Path, reference_file: Path | None = None) -> str:
-    """The command that writes this report, `--out` named where it is not the one directory's default."""
-    words = ["python -m rpo_jax.report", *map(str, directories)]
-    words += [] if list(directories) == [out] else [f"--out {out}"]
-    return " ".join(words + ([f"--reference {reference_file}"] if reference_file else []))
+    """The command that writes this report, `--out` named where it is not the one directory's
+    default; quoted for a shell, so that it runs as shown."""
+    words = ["python", "-m", "rpo_jax.report", *map(str, directories)]
+    words += [] if list(directories) == [out] else ["--out", str(out)]
+    return shlex.join(words + (["--reference", str(reference_file)] if reference_file else []))
 
 
 def build(out: Path, directories: Sequence[Path], reference_file: Path | None = None) -> Path:

@@ -1,6 +1,7 @@
 """The report's statistics against hand computations on a small fixed table."""
 
 import math
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -105,11 +106,13 @@ def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table
 
 
 def test_the_made_by_line_is_the_command_that_wrote_the_report(table, tmp_path):
-    text = built_with_reference(table, tmp_path, REFERENCE_CSV, tmp_path / "out").read_text()
-    named = text.split("Made by `")[1].split("`")[0]
-    assert named == f"python -m rpo_jax.report {tmp_path / 'exp'} --out {tmp_path / 'out'} --reference {tmp_path / 'ref.csv'}"
-    (tmp_path / "out" / "report.md").unlink()
-    assert report.main(named.split()[3:]) == 0 and (tmp_path / "out" / "report.md").read_text() == text
+    out = tmp_path / "my report"  # a space, which the line quotes
+    text = built_with_reference(table, tmp_path, REFERENCE_CSV, out).read_text()
+    named = shlex.split(text.split("Made by `")[1].split("`")[0])
+    reference = ["--reference", str(tmp_path / "ref.csv")]
+    assert named == ["python", "-m", "rpo_jax.report", str(tmp_path / "exp"), "--out", str(out), *reference]
+    (out / "report.md").unlink()
+    assert report.main(named[3:]) == 0 and (out / "report.md").read_text() == text
     alone = report.build(tmp_path / "exp", [tmp_path / "exp"]).read_text()
     assert f"Made by `python -m rpo_jax.report {tmp_path / 'exp'}` from" in alone
 
