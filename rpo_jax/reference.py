@@ -1,7 +1,8 @@
 """A published reference run set beside an experiment: its figures read from a CSV kept in the
 project (benchmarks/reference/), and for each task and algorithm whether the published mean lies
 inside our 95% interval, for the training return and for the deterministic evaluation, and
-Welch's test of our training returns against the published mean and spread."""
+Welch's test of our training returns against the published mean and spread, with Holm's adjustment
+for testing every row of the report at once."""
 
 from __future__ import annotations
 
@@ -53,38 +54,58 @@ def inside(published: Published, stats: dict, field: str) -> str:
     return "yes" if low <= published.mean <= high else "no"
 
 
-def welch_p(published: Published, stats: dict) -> str:
+def welch_p(published: Published, stats: dict) -> float | None:
     """The two-sided p-value of Welch's t-test between our seeds' final training returns and the
-    reference's (its std read as a sample std); '' with under 2 seeds on either side.
+    reference's (its std read as a sample std); None with under 2 seeds on either side, NaN where
+    both spreads are zero.
 
     'In CI' holds the reference's mean to our interval alone, as if it were exact; this test also
     counts the reference's own spread over its seeds, which 5 seeds of ours cannot ignore."""
     if stats["seeds"] < 2 or published.seeds < 2:
-        return ""
+        return None
     from scipy import stats as distributions
 
     ours = stats["return_mean"], stats["return_std"], stats["seeds"]
     test = distributions.ttest_ind_from_stats(*ours, published.mean, published.std, published.seeds, equal_var=False)
-    return "n/a" if math.isnan(test.pvalue) else f"{test.pvalue:.3f}"
+    return float(test.pvalue)
+
+
+def holm(p_values: list[float | None]) -> list[float | None]:
+    """Holm's step-down adjustment of the p-values of all the rows tested together: the i-th
+    smallest of m is multiplied by m - i + 1, capped at 1 and never below a smaller one's. A row
+    compared with the reference is one test of many, and by chance alone one in twenty is below
+    0.05; the adjusted value below 0.05 keeps that chance for the whole table. None and NaN stay
+    out of the count and are kept as they are."""
+    tested = sorted((p, row) for row, p in enumerate(p_values) if p is not None and not math.isnan(p))
+    adjusted: list[float | None] = list(p_values)
+    running = 0.0
+    for rank, (p, row) in enumerate(tested):
+        running = max(running, min(1.0, (len(tested) - rank) * p))
+        adjusted[row] = running
+    return adjusted
+
+
+def _p(value: float | None) -> str:
+    return "" if value is None else "n/a" if math.isnan(value) else f"{value:.3f}"
 
 
 def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[str, str], cell) -> list[str]:
     """The report's comparison: a row per (env, variant) whose algorithm the reference has.
     `cell(stats, field)` formats our mean ± std [interval] as the report's other tables do."""
+    compared = [(env, variant, stats, table.get((env, algos[variant]))) for (env, variant), stats in summary.items()]
+    compared = [row for row in compared if row[3] is not None]
+    if not compared:
+        return []
+    p_values = [welch_p(published, stats) for _, _, stats, published in compared]
     rows = []
-    for (env, variant), stats in summary.items():
-        published = table.get((env, algos[variant]))
-        if published is None:
-            continue
+    for (env, variant, stats, published), p, adjusted in zip(compared, p_values, holm(p_values), strict=True):
         evaluated = "eval_mean" in stats
         rows.append(
             f"| {env} | {variant} | {stats['seeds']} | {int(stats['env_steps']):,} | {cell(stats, 'return')} "
-            f"| {inside(published, stats, 'return')} | {welch_p(published, stats)} | {cell(stats, 'eval') if evaluated else ''} "
+            f"| {inside(published, stats, 'return')} | {_p(p)} | {_p(adjusted)} | {cell(stats, 'eval') if evaluated else ''} "
             f"| {inside(published, stats, 'eval') if evaluated else ''} "
             f"| {published.mean:.2f} ± {published.std:.2f} | {published.seeds} | {published.budget:,} |"
         )
-    if not rows:
-        return []
     sources = sorted({published.source for published in table.values()})
     return [
         "## Beside the published reference",
@@ -94,12 +115,14 @@ def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[
         "inside that interval; 'Welch p' is the two-sided p-value of Welch's t-test between our seeds' "
         "training returns and the reference's mean ± std over its seeds (its std read as a sample std), "
         "which counts the reference's spread as well as ours: a 'no' with p above 0.05 is a difference "
-        "the seeds cannot tell from chance. The reference: mean ± std over its seeds, as published "
-        f"({'; '.join(sources)}).",
+        "the seeds cannot tell from chance. 'Holm p' adjusts it for testing every row of this table at "
+        "once (Holm's step-down method): with many rows, some fall below 0.05 by chance alone, and only "
+        "an adjusted value below 0.05 marks a difference the table as a whole cannot put down to chance. "
+        f"The reference: mean ± std over its seeds, as published ({'; '.join(sources)}).",
         "",
-        "| env | variant | seeds | steps | training return | in CI | Welch p | evaluation return | in CI "
+        "| env | variant | seeds | steps | training return | in CI | Welch p | Holm p | evaluation return | in CI "
         "| reference | ref. seeds | ref. steps |",
-        "|---" * 12 + "|",
+        "|---" * 13 + "|",
         *rows,
         "",
     ]

@@ -134,6 +134,18 @@ def test_welchs_test_counts_the_references_spread_beside_ours(table, tmp_path):
     expected = welch_by_hand(np.array([100.0, 200.0, 300.0, 400.0]), 420.0, 400.0, 10)
     assert lines["rpo"][5] == "no" and expected > 0.1 and lines["rpo"][6] == f"{expected:.3f}"
     assert float(lines["ppo"][6]) < 0.001  # 0..100 against 900 ± 30
+    # Two rows tested: the smaller p doubles, the larger stays (never below the smaller's).
+    ppo = float(lines["ppo"][6])
+    assert float(lines["ppo"][7]) == pytest.approx(2 * ppo, abs=1e-3) and lines["rpo"][7] == f"{max(expected, 2 * ppo):.3f}"
+
+
+def test_holms_adjustment_steps_down_and_never_reorders():
+    # Sorted 0.005, 0.01, 0.03, 0.04 of m = 4: x4 0.02, x3 0.03, x2 0.06, x1 0.04 raised to 0.06.
+    adjusted = report.reference.holm([0.01, 0.04, None, 0.03, 0.005, float("nan")])
+    assert adjusted[:2] == pytest.approx([0.03, 0.06]) and adjusted[2] is None
+    assert adjusted[3:5] == pytest.approx([0.06, 0.02]) and np.isnan(adjusted[5])
+    assert report.reference.holm([0.4, 0.3]) == pytest.approx([0.6, 0.6])  # 0.3 x 2 = 0.6 caps 0.4
+    assert report.reference.holm([0.9, 0.8, 0.7]) == pytest.approx([1.0, 1.0, 1.0])
 
 
 @pytest.mark.parametrize(
