@@ -73,9 +73,9 @@ def welch_p(published: Published, stats: dict) -> float | None:
 def holm(p_values: list[float | None]) -> list[float | None]:
     """Holm's step-down adjustment of the p-values of all the rows tested together: the i-th
     smallest of m is multiplied by m - i + 1, capped at 1 and never below a smaller one's. A row
-    compared with the reference is one test of many, and by chance alone one in twenty is below
-    0.05; the adjusted value below 0.05 keeps that chance for the whole table. None and NaN stay
-    out of the count and are kept as they are."""
+    compared with the reference is one test of many, each below 0.05 by chance alone one time in
+    twenty; comparing the adjusted values with 0.05 holds the chance of any such false difference
+    in the whole table to 5%. None and NaN stay out of the count and are kept as they are."""
     tested = sorted((p, row) for row, p in enumerate(p_values) if p is not None and not math.isnan(p))
     adjusted: list[float | None] = list(p_values)
     running = 0.0
