@@ -92,8 +92,11 @@ def _p(value: float | None) -> str:
 def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[str, str], cell) -> list[str]:
     """The report's comparison: a row per (env, variant) whose algorithm the reference has.
     `cell(stats, field)` formats our mean ± std [interval] as the report's other tables do."""
-    compared = [(env, variant, stats, table.get((env, algos[variant]))) for (env, variant), stats in summary.items()]
-    compared = [row for row in compared if row[3] is not None]
+    compared = [
+        (env, variant, stats, published)
+        for (env, variant), stats in summary.items()
+        if (published := table.get((env, algos[variant]))) is not None
+    ]
     if not compared:
         return []
     p_values = [welch_p(published, stats) for _, _, stats, published in compared]
