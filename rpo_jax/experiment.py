@@ -52,7 +52,7 @@ SUITES: dict[str, tuple[str, ...]] = {
 # first five are the comparison's core, the others added as the CPU budget allowed.
 SUITES["reference"] = (
     "gym/Pendulum-v1", "dmc/pendulum-swingup", "dmc/cartpole-swingup_sparse", "dmc/walker-walk", "dmc/hopper-stand",
-    "dmc/acrobot-swingup", "dmc/walker-stand", "dmc/fish-swim",
+    "dmc/acrobot-swingup", "dmc/walker-stand", "dmc/fish-swim", "dmc/walker-run",
 )  # fmt: skip
 # Tasks where RPO at alpha 0.5 falls below PPO in the published reference run (MuJoCo v4 there).
 SUITES["pbt-alpha"] = ("gymnasium/InvertedDoublePendulum-v5", "gymnasium/Reacher-v5")

@@ -247,7 +247,7 @@ def test_jobs_picks_some_of_an_experiments_jobs_and_refuses_unknown_ones(capsys)
     definition = experiment.resolve(args)
     assert [job["name"] for job in definition["jobs"]] == ["ppo-terminate", "rpo-terminate"]  # the experiment's order
     assert all(dict(job["config"])["truncation"] == "terminate" for job in definition["jobs"])
-    assert definition["envs"][0] == "gym/Pendulum-v1" and len(definition["envs"]) == 8
+    assert definition["envs"][0] == "gym/Pendulum-v1" and len(definition["envs"]) == 9
     assert experiment.main(["truncation", "--envs", "cartpole", "--jobs", "rpo-forever"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "--jobs rpo-forever: truncation has jobs ppo-bootstrap" in err
