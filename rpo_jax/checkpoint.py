@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import hashlib
 import json
 import logging
@@ -120,6 +121,7 @@ class Checkpointer:
         # Handlers named up front so that a fresh process can read a checkpoint's metadata.
         handlers = {"state": ocp.StandardCheckpointHandler(), "record": ocp.JsonCheckpointHandler()}
         self.manager = ocp.CheckpointManager(Path(directory).absolute(), options=options, item_handlers=handlers)
+        _silence_stray_callbacks(self.manager.directory)
 
     def latest_update(self) -> int | None:
         return self.manager.latest_step()
@@ -144,7 +146,6 @@ class Checkpointer:
                 )
                 self.manager.wait_until_finished()
         except Exception as error:  # orbax and tensorstore raise ValueError and plain Exceptions for failed writes
-            _ignore_callbacks_into_closed_loops()
             raise self._write_failure(update, error) from None
 
     def _write_failure(self, update: int, error: Exception) -> OSError:
@@ -197,7 +198,6 @@ class Checkpointer:
                 ),
             )
         except Exception as error:  # orbax and tensorstore raise plain Exceptions for truncated or missing data
-            _ignore_callbacks_into_closed_loops()
             raise CheckpointDamaged(f"{damaged} ({_first_line(error)})") from None
         record, problem = _checked_record(restored.state, restored.record)
         if problem:
@@ -259,21 +259,37 @@ def _quiet_absl(level: int = logging.ERROR) -> Iterator[None]:
         logger.setLevel(previous)
 
 
-def _ignore_callbacks_into_closed_loops() -> None:
-    """After a failed read, tensorstore's other reads finish later and call back into orbax's
-    event loop, closed by then; each would print a traceback of `RuntimeError: Event loop is
-    closed` although the failure was reported and handled. Those, and only those, are dropped."""
-    previous = sys.unraisablehook
-    if getattr(previous, "ignores_closed_loops", False):
-        return
+def _silence_stray_callbacks(directory: Any) -> None:
+    """Set before anything reads or writes `directory`. After a failed read or write, orbax closes
+    its event loop while tensorstore's other operations on the checkpoint are still under way. As
+    they finish, each prints a traceback (`RuntimeError: Event loop is closed` from its callback,
+    or asyncio's "exception was never retrieved" naming the checkpoint), although the failure is
+    reported once and handled. Those, and only those, are dropped; the hook and the filter stay
+    for the process, since an operation may finish at any time, even before orbax's error reaches
+    us."""
+    _STRAY_CALLBACK_DIRECTORIES.add(str(directory))
+    if not getattr(sys.unraisablehook, "ignores_closed_loops", False):
+        hook = functools.partial(_report_unless_closed_loop, sys.unraisablehook)
+        hook.ignores_closed_loops = True  # type: ignore[attr-defined]
+        sys.unraisablehook = hook
+    asyncio_logger = logging.getLogger("asyncio")
+    if _not_a_stray_callback not in asyncio_logger.filters:
+        asyncio_logger.addFilter(_not_a_stray_callback)
 
-    def hook(unraisable: Any) -> None:
-        value = unraisable.exc_value
-        if not (isinstance(value, RuntimeError) and str(value) == "Event loop is closed"):
-            previous(unraisable)
 
-    hook.ignores_closed_loops = True  # type: ignore[attr-defined]
-    sys.unraisablehook = hook
+# The checkpoint directories whose stray callbacks are dropped (see _silence_stray_callbacks).
+_STRAY_CALLBACK_DIRECTORIES: set[str] = set()
+
+
+def _report_unless_closed_loop(previous: Callable[[Any], object], unraisable: Any) -> None:
+    value = unraisable.exc_value
+    if not (isinstance(value, RuntimeError) and str(value) == "Event loop is closed"):
+        previous(unraisable)
+
+
+def _not_a_stray_callback(record: logging.LogRecord) -> bool:
+    message = record.getMessage()
+    return not ("exception was never retrieved" in message and any(d in message for d in _STRAY_CALLBACK_DIRECTORIES))
 
 
 def _first_line(error: BaseException) -> str:

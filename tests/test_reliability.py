@@ -6,11 +6,14 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import gc
 import io
 import json
 import os
 import shutil
 import signal
+import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -350,6 +353,24 @@ def test_a_damaged_checkpoint_is_reported_and_the_previous_one_restored(tmp_path
     assert checkpointer.updates() == [1] and (tmp_path / "damaged-2").is_dir()
     checkpointer.save(2, states[2], {"update": 2})
     checkpointer.close()
+
+
+@pytest.mark.parametrize("how", ["truncated", "flipped", "data deleted"])
+def test_a_damaged_checkpoints_other_reads_print_nothing_when_they_finish(tmp_path, caplog, monkeypatch, how):
+    """tensorstore's reads still under way when orbax gives up on a damaged checkpoint call back
+    into orbax's closed event loop as they finish; none of that reaches the user's terminal."""
+    state = {f"leaf{i}": jax.random.normal(jax.random.PRNGKey(i), (10, 100)) for i in range(40)}  # many reads
+    checkpointer = Checkpointer(tmp_path)
+    checkpointer.save(1, state, {"update": 1})
+    checkpointer.close()
+    damage(tmp_path / "1", how)
+    printed: list = []
+    monkeypatch.setattr(sys, "unraisablehook", printed.append)  # where Python prints them by default
+    with pytest.raises(CheckpointDamaged):
+        Checkpointer(tmp_path).restore(abstract(state))
+    time.sleep(0.5)  # the other reads finish
+    gc.collect()  # asyncio reports a failed task's exception when the task is freed
+    assert printed == [] and [record.getMessage() for record in caplog.records if record.name == "asyncio"] == []
 
 
 def test_a_checkpoint_saved_without_checksums_restores_unverified(tmp_path):
