@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import fcntl
 import hashlib
 import json
@@ -204,6 +205,7 @@ def _row_update(line: bytes) -> int | None:
 
 def write_rows(metrics: IO[bytes], rows: list[dict[str, Any]]) -> None:
     """Appends `rows` whole or not at all: a failed write is cut back, so the file never ends mid-line."""
+    _refuse_a_file_gone(metrics)
     start = metrics.tell()
     data = "".join(json.dumps(row, allow_nan=False) + "\n" for row in rows).encode()
     try:
@@ -213,6 +215,19 @@ def write_rows(metrics: IO[bytes], rows: list[dict[str, Any]]) -> None:
     except OSError:
         metrics.truncate(start)
         raise
+
+
+def _refuse_a_file_gone(handle: IO[bytes]) -> None:
+    """OSError where the file open in `handle` is no longer the one at its path: removed, or
+    replaced (a checkout, a stash, an editor's save). Rows written on would go to a file that
+    nothing can read, so the run stops, resumable from its last checkpoint, instead."""
+    try:
+        on_disk = os.stat(handle.name)
+    except FileNotFoundError:
+        raise OSError(errno.ENOENT, "removed while the run was writing it", handle.name) from None
+    held = os.fstat(handle.fileno())
+    if (on_disk.st_dev, on_disk.st_ino) != (held.st_dev, held.st_ino):
+        raise OSError(errno.ESTALE, "replaced while the run was writing it", handle.name)
 
 
 @contextlib.contextmanager

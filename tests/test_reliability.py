@@ -534,6 +534,47 @@ def test_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
     assert one_line(capsys) == f"error: No space left on device: {out / METRICS_FILE}; {out} removed (no checkpoint to resume)"
 
 
+def test_a_metrics_file_replaced_under_the_run_stops_it_in_one_line_and_it_resumes(finished, tmp_path, capsys, monkeypatch):
+    """A checkout, a stash or an editor's save that replaces metrics.jsonl while the run writes it
+    would send every later row to a file nothing reads; the run stops instead, and resumes from
+    the file put back as if never stopped."""
+    writes: list[int] = []
+
+    def replaced_before_the_third_write(metrics, rows):
+        writes.append(len(rows))
+        if len(writes) == 3:
+            path = Path(metrics.name)
+            shutil.copy(path, tmp_path / "copy")
+            os.replace(tmp_path / "copy", path)  # the same rows, another file
+        write_rows(metrics, rows)
+
+    monkeypatch.setattr(runner, "write_rows", replaced_before_the_third_write)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 2
+    assert one_line(capsys) == (
+        f"error: replaced while the run was writing it: {out / METRICS_FILE}; "
+        f"fix that, then continue with: python -m rpo_jax.train --resume {out}"
+    )
+    monkeypatch.undo()
+    assert train.main(["--resume", str(out), "--quiet"]) == 0
+    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
+    assert without_timing(out) == without_timing(finished)
+
+
+def test_rows_are_not_written_to_a_file_removed_or_replaced(tmp_path):
+    path = tmp_path / METRICS_FILE
+    path.write_text('{"update": 1}\n')
+    with open(path, "ab", buffering=0) as metrics:
+        path.rename(tmp_path / "elsewhere")
+        with pytest.raises(OSError, match="removed while the run was writing it") as removed:
+            write_rows(metrics, [{"update": 2}])
+        path.write_text('{"update": 1}\n')
+        with pytest.raises(OSError, match="replaced while the run was writing it") as replaced:
+            write_rows(metrics, [{"update": 2}])
+    assert (removed.value.errno, replaced.value.errno) == (errno.ENOENT, errno.ESTALE)
+    assert path.read_text() == (tmp_path / "elsewhere").read_text() == '{"update": 1}\n'
+
+
 def test_rows_are_appended_whole_or_not_at_all(tmp_path):
     class FillsUp(io.FileIO):
         def write(self, data):  # room for 10 more bytes
