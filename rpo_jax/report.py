@@ -241,25 +241,40 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
     return written
 
 
-def _command(directories: Sequence[Path], out: Path, reference_file: Path | None = None) -> str:
+def _command(directories: Sequence[Path], out: Path, reference_file: Path | None = None, pool: bool = False) -> str:
     """The command that writes this report, `--out` named where it is not the one directory's
     default; quoted for a shell, so that it runs as shown."""
     words = ["python", "-m", "rpo_jax.report", *map(str, directories)]
     words += [] if list(directories) == [out] else ["--out", str(out)]
-    return shlex.join(words + (["--reference", str(reference_file)] if reference_file else []))
+    words += ["--reference", str(reference_file)] if reference_file else []
+    return shlex.join(words + (["--pool"] if pool else []))
 
 
-def build(out: Path, directories: Sequence[Path], reference_file: Path | None = None) -> Path:
-    """Writes out/report.md and out/figures/ from the results in `directories`, beside the
-    published figures in `reference_file` where given."""
-    published = reference.read(reference_file) if reference_file else {}
-    rows, jobs = [], {}
+def read_directories(directories: Sequence[Path], pool: bool = False) -> tuple[list[dict], dict]:
+    """The rows of every directory's results.csv and its population jobs. Each directory's
+    variants are named after it where there are several, or, with `pool`, joined as one set of
+    seeds (a seed in two directories is refused: it would count one run twice)."""
+    rows, jobs, found_in = [], {}, {}
     for directory in directories:
-        prefix = f"{directory.name}: " if len(directories) > 1 else ""
+        prefix = f"{directory.name}: " if len(directories) > 1 and not pool else ""
         jobs.update(pbt_report.population_jobs(directory, prefix))
         for row in read_results(directory):
             row["variant"] = prefix + row["variant"]
+            key = row["env"], row["variant"], row["seed"]
+            if found_in.setdefault(key, directory) != directory:
+                raise UsageError(
+                    f"--pool: {key[0]} {key[1]} seed {key[2]:g} is in both {found_in[key]} and {directory}; "
+                    "pooled directories hold different seeds"
+                )
             rows.append(row)
+    return rows, jobs
+
+
+def build(out: Path, directories: Sequence[Path], reference_file: Path | None = None, pool: bool = False) -> Path:
+    """Writes out/report.md and out/figures/ from the results in `directories` (with `pool`, their
+    seeds joined), beside the published figures in `reference_file` where given."""
+    published = reference.read(reference_file) if reference_file else {}
+    rows, jobs = read_directories(directories, pool)
     check_out(out)
     out.mkdir(parents=True, exist_ok=True)
     members = group_runs(rows) if jobs else {}  # a population job's runs, before they become populations
@@ -278,7 +293,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     lines = [
         f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
         "",
-        f"Made by `{_command(directories, out, reference_file)}` from results.csv "
+        f"Made by `{_command(directories, out, reference_file, pool)}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} "
         f"{'seed(s) or population(s)' if jobs else 'seed(s)'} each, "
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
@@ -400,6 +415,9 @@ class ReportArgs:
     reference: Annotated[Path | None, tyro.conf.arg(metavar="CSV")] = None
     """published figures to set beside ours (env, algo, mean, std, seeds, budget, source), e.g.
     benchmarks/reference/cleanrl_rpo_8m.csv"""
+    pool: bool = False
+    """join the experiment directories' runs of each environment and variant as one set of seeds
+    (more seeds trained later into a directory of their own) instead of setting them side by side"""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -410,6 +428,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError("give DIR: one or more experiment directories with results.csv, or run directories")
         if args.out is None and len(args.dirs) > 1:
             raise UsageError("--out is needed when overlaying several directories")
+        if args.pool and (len(args.dirs) < 2 or not all((directory / RESULTS_FILE).is_file() for directory in args.dirs)):
+            raise UsageError(f"--pool joins the seeds of two or more experiment directories, each with its {RESULTS_FILE}")
         run_dirs = [RunDir(directory) for directory in args.dirs]
         held = held_runs(args.dirs[0]) if len(args.dirs) == 1 else []
         if not any((directory / RESULTS_FILE).is_file() for directory in args.dirs) and all(map(RunDir.has_config, run_dirs)):
@@ -417,7 +437,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif held:
             path = build_run(held, args.out or args.dirs[0], args.dirs[0])
         else:
-            path = build(args.out or args.dirs[0], args.dirs, args.reference)
+            path = build(args.out or args.dirs[0], args.dirs, args.reference, args.pool)
         print(f"report: {path}")
     return exit.code
 

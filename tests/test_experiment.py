@@ -159,6 +159,30 @@ def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
     ]
 
 
+def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp_path, capsys):
+    """Seeds added later in a directory of their own: --pool reports them as one set of seeds,
+    the same tables as the seeds trained together; a seed in two directories is refused."""
+    rows = report.read_results(uninterrupted)
+    halves = [tmp_path / "seed-1", tmp_path / "more-seeds"]
+    for half, seeds in zip(halves, ({1}, {2})):
+        half.mkdir()
+        report.write_results(half, [row for row in rows if row["seed"] in seeds])
+    assert report.main([*map(str, halves), "--out", str(tmp_path / "pooled"), "--pool"]) == 0
+
+    def tables(path):
+        return [line for line in path.read_text().splitlines() if line.startswith("|")]
+
+    assert tables(tmp_path / "pooled" / "report.md") == tables(uninterrupted / "report.md")
+    assert "--out " + str(tmp_path / "pooled") + " --pool`" in (tmp_path / "pooled" / "report.md").read_text()
+    capsys.readouterr()
+    assert report.main([str(halves[0]), str(uninterrupted), "--out", str(tmp_path / "twice"), "--pool"]) == 2
+    assert report.main([str(uninterrupted), "--pool"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: --pool: cartpole ppo seed 1 is in both {halves[0]} and {uninterrupted}; pooled directories hold different seeds",
+        "error: --pool joins the seeds of two or more experiment directories, each with its results.csv",
+    ]
+
+
 def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_path):
     one_seed = tmp_path / "one-seed"
     one_seed.mkdir()
