@@ -261,7 +261,7 @@ def read_directories(directories: Sequence[Path], pool: bool = False) -> tuple[l
         for row in read_results(directory):
             row["variant"] = prefix + row["variant"]
             key = row["env"], row["variant"], row["seed"]
-            if found_in.setdefault(key, directory) != directory:
+            if pool and found_in.setdefault(key, directory) != directory:
                 raise UsageError(
                     f"--pool: {key[0]} {key[1]} seed {key[2]:g} is in both {found_in[key]} and {directory}; "
                     "pooled directories hold different seeds"
