@@ -17,11 +17,12 @@ from pathlib import Path
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.rundir import METRICS_FILE, RunDir
+from rpo_jax.sinks import TENSORBOARD_METRICS
 
-CONSTANT = ("run", "seed", "rpo_alpha", "ent_coef", "lr", "drac_coef")  # a run's fields on every row
-TRAIN_TAGS = ("episode_return", "episode_length", "episodes_finished", "policy_entropy", "policy_loss", "value_loss")
-TRAIN_TAGS += ("approx_kl", "clip_fraction", "action_std", "learning_rate", "sps")
+CONSTANT = ("run", "seed", *SWEEPABLE)  # a run's fields on every row
+TRAIN_TAGS = (*TENSORBOARD_METRICS, "sps")  # under train/, as `sinks.row_scalars` writes them
 
 
 def rebuilt_rows(run_dir: RunDir, kept: list[dict]) -> dict[tuple[int, int], dict]:

@@ -259,6 +259,10 @@ def _quiet_absl(level: int = logging.ERROR) -> Iterator[None]:
         logger.setLevel(previous)
 
 
+# The checkpoint directories whose stray callbacks are dropped (see _silence_stray_callbacks).
+_STRAY_CALLBACK_DIRECTORIES: set[str] = set()
+
+
 def _silence_stray_callbacks(directory: Any) -> None:
     """Set before anything reads or writes `directory`. After a failed read or write, orbax closes
     its event loop while tensorstore's other operations on the checkpoint are still under way. As
@@ -275,10 +279,6 @@ def _silence_stray_callbacks(directory: Any) -> None:
     asyncio_logger = logging.getLogger("asyncio")
     if _not_a_stray_callback not in asyncio_logger.filters:
         asyncio_logger.addFilter(_not_a_stray_callback)
-
-
-# The checkpoint directories whose stray callbacks are dropped (see _silence_stray_callbacks).
-_STRAY_CALLBACK_DIRECTORIES: set[str] = set()
 
 
 def _report_unless_closed_loop(previous: Callable[[Any], object], unraisable: Any) -> None:
