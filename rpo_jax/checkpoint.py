@@ -34,6 +34,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
+from rpo_jax import peers
+
 # The record's key holding the checksums; `restore` returns the record without it.
 CHECKSUMS = "checksums"
 
@@ -146,6 +148,8 @@ class Checkpointer:
                 )
                 self.manager.wait_until_finished()
         except Exception as error:  # orbax and tensorstore raise ValueError and plain Exceptions for failed writes
+            if peers.lost_peer(error):
+                raise  # no fault of the disk: the processes' own line says which (peers)
             raise self._write_failure(update, error) from None
 
     def _write_failure(self, update: int, error: Exception) -> OSError:

@@ -10,6 +10,10 @@ import threading
 from typing import Callable, Iterator
 
 
+# The exit code of a run stopped by a non-finite number (`Diverged`).
+DIVERGED_EXIT = 1
+
+
 class UsageError(ValueError):
     """Bad input from the user or a caller of the library: reported as one line with exit code 2."""
 
@@ -89,7 +93,7 @@ def os_failure(error: OSError, resume: str = "") -> int:
 
 def diverged_failure(error: Diverged) -> int:
     print(f"error: {error}", file=sys.stderr)
-    return 1
+    return DIVERGED_EXIT
 
 
 class ExitCode:

@@ -6,6 +6,8 @@ answering. Each process here instead beats in the key-value store of JAX's coord
 counter it increments) and reads the others' counters; a counter that has not moved for the
 timeout, or a coordinator that stops answering, ends the process with one line and exit code 2
 (its checkpoints stay, and the run resumes from them). JAX's heartbeat is set to fire later.
+A process that fails alone (`end_alone`) says so in the store before it leaves, and the others
+end in one line naming it rather than wait for it inside a collective.
 """
 
 from __future__ import annotations
@@ -23,11 +25,14 @@ import jax
 
 from rpo_jax.errors import UsageError
 
-BEAT, FINISHED, LEFT = "rpo_jax/beat/", "rpo_jax/finished/", "rpo_jax/left/"
+BEAT, FINISHED, FAILED, LEFT = "rpo_jax/beat/", "rpo_jax/finished/", "rpo_jax/failed/", "rpo_jax/left/"
 # How long process 0, which holds the coordinator, waits for the others' exits when all stop.
 LEAVE_WAIT_MS, LEAVE_GRACE_S = 30_000, 0.2
-# Set once the processes have agreed to stop (a run refused by one of them): a peer that exits
-# first is then expected, and the line already printed is the one that says why.
+# How long a process whose peer ended on an error of its own (`end_alone`) gives its own run to end
+# by itself before it ends in one line: a failure met by every process may reach it a moment later.
+FAILED_GRACE_S = 5.0
+# Set once this process is stopping for a reason it has printed, with the others (a run refused by
+# one of them) or alone (`end_alone`): a peer that exits first is then no news.
 _stopped = threading.Event()
 # What a collective's error says when a peer went away (gloo on CPUs; the coordination service).
 LOST_PEER_WORDS = ("Connection closed by peer", "Connection reset by peer", "Gloo", "UNAVAILABLE")
@@ -176,7 +181,26 @@ def stop_watching() -> None:
     atexit.register(_leave)  # registered after JAX's shutdown, so it runs before it
 
 
-def _leave() -> None:
+def end_alone(code: int) -> None:
+    """Ends this process of several, which stops on its own with exit `code` (an error it has
+    printed, met by it alone) rather than together with the others (`stop_watching`): it says so in
+    the store, and the others, which would otherwise wait for it inside a collective until JAX's
+    shutdown aborts them all in C++, end in one line (`_watch`). It leaves at once, process 0 once
+    the others have read it. Nothing for one process, for code 0, or after a stop together."""
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if code == 0 or client is None or jax.process_count() == 1 or _stopped.is_set():
+        return
+    _stopped.set()
+    try:
+        client.key_value_set(f"{FAILED}{jax.process_index()}", "1")
+    except Exception:  # noqa: BLE001 - the coordinator gone already: the others find that out themselves
+        pass
+    _leave(code)
+
+
+def _leave(code: int = 2) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     from jax._src import distributed
@@ -191,11 +215,12 @@ def _leave() -> None:
             client.key_value_set(f"{LEFT}{me}", "1")
     except Exception:  # noqa: BLE001 - a peer or the coordinator gone already: nothing to wait for
         pass
-    os._exit(2)
+    os._exit(code)
 
 
 def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> None:
     last_change = {peer: (None, time.monotonic()) for peer in range(count) if peer != me}
+    failed_since: dict[int, float] = {}  # peer -> when its failure (`end_alone`) was first read
     while True:
         # The store's calls may hang once process 0, which holds it, is gone: a timer ends them.
         unanswered = threading.Timer(timeout, _exit, (f"the coordinator {coordinator} stopped answering",))
@@ -206,19 +231,52 @@ def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> 
             for peer in [peer for peer in last_change if _get(client, f"{FINISHED}{peer}") is not None]:
                 del last_change[peer]  # it ended normally: never watched again
             beats = {peer: _get(client, f"{BEAT}{peer}") for peer in last_change}
+            failed = [peer for peer in last_change if _get(client, f"{FAILED}{peer}") is not None]
         except Exception as error:  # noqa: BLE001 - any failure of the store: the coordinator is gone
             _exit(f"the coordinator {coordinator} stopped answering ({type(error).__name__})")
         unanswered.cancel()
         if not last_change:
             return  # every other process has ended normally: nothing left to watch
         now = time.monotonic()
+        for peer in failed:
+            failed_since.setdefault(peer, now)
+        _end_after_failed(client, me, failed_since)
         for peer, value in beats.items():
             seen, since = last_change[peer]
             if value != seen:
                 last_change[peer] = (value, now)
-            elif now - since > timeout:
+            elif now - since > timeout and peer not in failed_since:  # a failed one is told apart above
                 _exit(f"process {peer} has not answered for {timeout} s (stopped, or its machine is gone)")
         time.sleep(max(timeout / 5, 0.2))
+
+
+def _end_after_failed(client: Any, me: int, failed_since: dict[int, float]) -> None:
+    """Ends this process in one line once a peer that ended on an error of its own (`end_alone`)
+    did so FAILED_GRACE_S ago, unless this process's own run ended meanwhile (a failure met by
+    every process, this one a moment later), its own error then the one printed. Its word is left
+    first for process 0, which may be the one that failed and waits for it."""
+    late = [peer for peer, since in failed_since.items() if time.monotonic() - since > FAILED_GRACE_S]
+    if not late or _stopped.is_set():
+        return
+    with contextlib.suppress(Exception):
+        client.key_value_set(f"{LEFT}{me}", "1")
+    _exit(_failed_alone(late[0]))
+
+
+def _failed_alone(peer: int) -> str:
+    return f"process {peer} stopped on an error of its own (its output says which)"
+
+
+def _failed_peer() -> int | None:
+    """The first other process that ended on an error of its own (`end_alone`), None for none
+    (or a store that no longer answers)."""
+    from jax._src import distributed
+
+    client, me = distributed.global_state.client, jax.process_index()
+    try:
+        return next((peer for peer in range(jax.process_count()) if peer != me and _get(client, f"{FAILED}{peer}")), None)
+    except Exception:  # noqa: BLE001 - the coordinator gone: no word to read
+        return None
 
 
 def _lost_peer_or(excepthook: Any) -> Any:
@@ -226,12 +284,23 @@ def _lost_peer_or(excepthook: Any) -> Any:
     "Connection closed by peer"), usually the first sign of it: the one line instead."""
 
     def hook(kind: type, error: BaseException, traceback: Any) -> None:
-        text = str(error)
-        if isinstance(error, jax.errors.JaxRuntimeError) and any(word in text for word in LOST_PEER_WORDS):
-            _exit(f"a collective with the other processes failed ({text.strip().splitlines()[0][:160]})")
+        if lost_peer(error):
+            failed = _failed_peer()  # one that failed alone closes its connections as it leaves
+            _exit(
+                _failed_alone(failed) if failed is not None
+                else f"a collective with the other processes failed ({str(error).strip().splitlines()[0][:160]})"
+            )  # fmt: skip
         excepthook(kind, error, traceback)
+        end_alone(1)  # Python's exit code for an uncaught error
 
     return hook
+
+
+def lost_peer(error: BaseException) -> bool:
+    """Whether `error` is a collective's that failed because another process went away. JAX
+    raises XLA's errors as JaxRuntimeError, or as ValueError from an operation run eagerly."""
+    text = str(error)
+    return isinstance(error, (jax.errors.JaxRuntimeError, ValueError)) and any(word in text for word in LOST_PEER_WORDS)
 
 
 def _get(client: Any, key: str) -> str | None:

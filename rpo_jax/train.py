@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
-from rpo_jax.errors import UsageError, command_failures
+from rpo_jax.errors import DIVERGED_EXIT, UsageError, command_failures
 from rpo_jax.rundir import env_directory
 from rpo_jax.scores import with_spread
 from rpo_jax.spec import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
@@ -162,6 +162,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     or SIGTERM stopped it (resumable)."""
     with command_failures(resume_line) as exit:
         return run_command(sys.argv[1:] if argv is None else list(argv))
+    peers = sys.modules.get("rpo_jax.peers")  # imported once JAX is: none before, no other process
+    if peers and exit.code != DIVERGED_EXIT:  # every process diverges at the same update, and stops by itself
+        peers.end_alone(exit.code)
     return exit.code
 
 

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -33,6 +35,7 @@ ENVIRONMENT = {
     **{name: value for name, value in os.environ.items() if not name.startswith(("SLURM_", "OMPI_", "PMI_"))},
     "PYTHONPATH": str(ROOT),
     "JAX_PLATFORMS": "cpu",
+    "PYTHONFAULTHANDLER": "1",  # a process sent SIGABRT by `finished` prints its threads' stacks
 }
 
 
@@ -51,10 +54,27 @@ def command(args: list[str], devices: int = 1) -> subprocess.Popen:
     )  # fmt: skip
 
 
-def finished(processes: list[subprocess.Popen]) -> list[dict]:
-    """Each process's exit code, stdout and stderr; all are killed if one outlives the timeout."""
+def said(results: list[dict]) -> str:
+    """What each process printed, whole (pytest shortens a failed assertion's objects, not its text)."""
+    parts = [f"process {i}, exit {one['code']}:\n{one['stdout']}{one['stderr'][-6000:]}" for i, one in enumerate(results)]
+    return "\n".join(parts)
+
+
+def finished(processes: list[subprocess.Popen], timeout: float = 300) -> list[dict]:
+    """Each process's exit code, stdout and stderr. If one outlives the timeout, every process
+    still running prints its threads' Python stacks (faulthandler, on SIGABRT) and the test fails
+    with what each printed: a hang says where each process was."""
+    deadline, outputs = time.monotonic() + timeout, []
     try:
-        outputs = [process.communicate(timeout=300) for process in processes]
+        for process in processes:
+            outputs.append(process.communicate(timeout=max(deadline - time.monotonic(), 0.1)))
+    except subprocess.TimeoutExpired:
+        for process in processes[len(outputs) :]:
+            if process.poll() is None:
+                process.send_signal(signal.SIGABRT)
+        outputs += [process.communicate(timeout=60) for process in processes[len(outputs) :]]
+        results = [{"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)]
+        pytest.fail(f"the processes did not finish in {timeout} s\n{said(results)}", pytrace=False)
     finally:
         for process in processes:
             process.kill()
@@ -89,7 +109,7 @@ def printed(result: dict) -> list[str]:
 def test_two_processes_train_their_shares_of_the_runs_and_only_process_0_writes(tmp_path):
     # No checkpoints: process 1 has nothing to write, so its own --out stays unmade.
     results = two_processes([*TINY, "--num-seeds", "2", "--checkpoint-every", "0"], (tmp_path / "run", tmp_path / "other"))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     assert not (tmp_path / "other").exists() and printed(results[1]) == []
     assert "2 run(s)" in results[0]["stdout"]
     summary = RunDir(tmp_path / "run").read_summary()
@@ -143,7 +163,7 @@ def test_host_side_environments_train_in_two_processes_as_in_one_with_two_device
     reference, run, other = tmp_path / "one-process", tmp_path / "two-processes", tmp_path / "other"
     assert one_process([*args, "--out", str(reference)])["code"] == 0
     results = two_processes(args, (run, other))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     assert not other.exists() and printed(results[1]) == []
     for a, b in zip(params_of(run), params_of(reference), strict=True):
         np.testing.assert_array_equal(a, b)
@@ -164,7 +184,7 @@ def test_brax_and_playground_train_in_two_processes_as_in_one_with_two_devices(t
     reference, run = tmp_path / "one-process", tmp_path / "two-processes"
     assert one_process([*args, "--out", str(reference)])["code"] == 0
     results = two_processes(args, (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     for a, b in zip(params_of(run), params_of(reference), strict=True):
         np.testing.assert_array_equal(a, b)
     assert rows_of(run) == rows_of(reference)
@@ -183,7 +203,7 @@ def test_two_processes_train_and_resume_as_one_process_with_two_devices(tmp_path
     reference, run = tmp_path / "one-process", tmp_path / "two-processes"
     assert one_process([*args, "--out", str(reference)])["code"] == 0
     results = two_processes(args, (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     assert printed(results[1]) == []
     # Same program, same shares on the same number of devices: the same numbers, bit for bit.
     for a, b in zip(params_of(run), params_of(reference), strict=True):
@@ -199,7 +219,7 @@ def test_two_processes_train_and_resume_as_one_process_with_two_devices(tmp_path
         if damaged:
             shutil.rmtree(RunDir(run).checkpoints / "3" / "state")
         results = two_processes(["--resume", str(run), "--quiet"], (run, run))
-        assert [result["code"] for result in results] == [0, 0], results
+        assert [result["code"] for result in results] == [0, 0], said(results)
         assert RunDir(run).read_params() == params and rows_of(run) == rows
         assert (RunDir(run).checkpoints / "damaged-3").is_dir() == damaged
     (run / "summary.json").unlink()
@@ -217,13 +237,13 @@ def test_a_host_side_run_of_two_processes_resumes_as_one_process_with_two_device
     reference, run = tmp_path / "one-process", tmp_path / "two-processes"
     assert one_process([*args, "--out", str(reference)])["code"] == 0
     results = two_processes(args, (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     uninterrupted = rows_of(run)
     for out in (reference, run):  # as if killed after the last checkpoint (update 3 of 4)
         (out / "summary.json").unlink()
     assert one_process(["--resume", str(reference), "--quiet"])["code"] == 0
     results = two_processes(["--resume", str(run), "--quiet"], (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     for a, b in zip(params_of(run), params_of(reference), strict=True):
         np.testing.assert_array_equal(a, b)
     rows = rows_of(run)
@@ -276,7 +296,7 @@ def test_a_population_in_two_processes_evolves_as_in_one_process_with_two_device
     reference, run, other = tmp_path / "one-process", tmp_path / "two-processes", tmp_path / "other"
     assert one_process([*PBT, "--out", str(reference)])["code"] == 0
     results = two_processes(PBT, (run, other))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     assert not other.exists() and printed(results[1]) == []
     for a, b in zip(params_of(run), params_of(reference), strict=True):
         np.testing.assert_array_equal(a, b)
@@ -294,12 +314,12 @@ def test_a_population_of_two_processes_resumes_its_lineage_as_the_uninterrupted_
     # Checkpoints at updates 1 and 2; resumed from 1, the exploit step after update 2 is drawn again.
     run = tmp_path / "run"
     results = two_processes([*PBT[:-1], "64"], (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     params, rows, lineage = RunDir(run).read_params(), rows_of(run), RunDir(run).read_lineage()
     (run / "summary.json").unlink()
     shutil.rmtree(RunDir(run).checkpoints / "2")
     results = two_processes(["--resume", str(run), "--quiet"], (run, run))
-    assert [result["code"] for result in results] == [0, 0], results
+    assert [result["code"] for result in results] == [0, 0], said(results)
     assert RunDir(run).read_params() == params and rows_of(run) == rows
     assert RunDir(run).read_lineage() == lineage and [row["update"] for row in lineage] == [2]
     assert (RunDir(run).checkpoints / "2").is_dir()  # trained again from update 1

@@ -1,7 +1,7 @@
 """Failures around the processes and the disk: joining processes that never meet or name a port
-JAX cannot use, a peer that dies, a disk that fills up at each write, damaged checkpoints and a
-SIGTERM during a checkpoint's write. Each ends in one line and a known exit code, and leaves a
-run that resumes exactly where something resumable was written."""
+JAX cannot use, a peer that dies or fails alone, a disk that fills up at each write, damaged
+checkpoints and a SIGTERM during a checkpoint's write. Each ends in one line and a known exit
+code, and leaves a run that resumes exactly where something resumable was written."""
 
 from __future__ import annotations
 
@@ -12,13 +12,15 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 
 import orbax.checkpoint as ocp
 import pytest
 from tensorboardX.event_file_writer import EventsWriter
-from test_hosts import TINY as CARTPOLE, command, free_port, printed
+from test_hosts import ENVIRONMENT, TINY as CARTPOLE, command, free_port, printed
+from test_hosts import finished as hosts_finished
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
 
 from rpo_jax import peers, runner, train
@@ -148,6 +150,84 @@ def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(mo
     assert not watching.is_alive()
     assert store.reads[f"{peers.FINISHED}1"] == 1 and store.reads[f"{peers.BEAT}1"] == 0
     assert store.reads[f"{peers.BEAT}2"] >= 2
+
+
+def test_a_peer_that_failed_ends_this_process_after_the_timeout_unless_it_ends_first(monkeypatch):
+    # Process 1 ended on an error of its own (peers.end_alone): process 0 gives its own run a
+    # moment to end by itself, then ends in one line, its word left for a failed process 0.
+    monkeypatch.setattr(peers, "FAILED_GRACE_S", 1.0)
+    store, ended = Store({f"{peers.FAILED}1": "1"}), []
+    store.key_value_set = lambda key, value: store.values.__setitem__(key, value)
+    # The watch goes on where _exit returns: process 1 then seen finished, it ends.
+    monkeypatch.setattr(peers, "_exit", lambda why: ended.append(why) or store.key_value_set(f"{peers.FINISHED}1", "1"))
+    started = time.monotonic()
+    peers._watch(store, 0, 2, "localhost:1", 1)
+    assert ended == ["process 1 stopped on an error of its own (its output says which)"]
+    assert time.monotonic() - started > 1 and store.values[f"{peers.LEFT}0"] == "1"
+    # The same, but this process's run ends by itself meanwhile: nothing said of the peer.
+    del store.values[f"{peers.FINISHED}1"]
+    ended.clear()
+    monkeypatch.setattr(peers, "_stopped", threading.Event())
+    watching = threading.Thread(target=peers._watch, args=(store, 0, 2, "localhost:1", 1), daemon=True)
+    watching.start()
+    peers._stopped.set()
+    time.sleep(1.6)
+    store.key_value_set(f"{peers.FINISHED}1", "1")
+    watching.join(timeout=5)
+    assert ended == [] and not watching.is_alive()
+
+
+# Runs one train command with one failure injected: `runner.write_rows` fails for a full disk
+# (process 0 alone writes the rows), or test_host's point mass raises in the process named.
+BROKE = "the simulator broke"
+FAILING_RUN = f"""
+import errno, sys
+import jax
+from rpo_jax import runner, train
+from tests import test_host
+kind, process = sys.argv[1], int(sys.argv[2])
+
+def write_rows(file, rows, written=runner.write_rows):
+    if kind == "full disk" and rows[-1]["update"] >= 3:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    written(file, rows)
+
+def step(sim, action, stepped=test_host.PointMassSim.step):
+    if kind == "simulator" and sim.t >= 3 and jax.process_index() == process:
+        raise RuntimeError({BROKE!r})
+    return stepped(sim, action)
+
+runner.write_rows, test_host.PointMassSim.step = write_rows, step
+sys.exit(train.main(sys.argv[3:]))
+"""
+
+
+@pytest.mark.parametrize(
+    "kind, process, says",
+    [("full disk", 0, "No space left on device"), ("simulator", 0, BROKE), ("simulator", 1, BROKE)],
+    ids=["full disk in process 0", "simulator error in process 0", "simulator error in process 1"],
+)
+def test_a_process_that_fails_alone_ends_the_others_in_one_line(tmp_path, kind, process, says):
+    """Where the others waited inside a collective until JAX's shutdown aborted every process in
+    C++ (tens of lines each, after 30 s): the failed process prints its own error and exits with
+    its code, the other one line and exit code 2."""
+    port, out = free_port(), tmp_path / "run"
+    flags = ["--env", "tests.test_host:host_point_mass", *CARTPOLE[2:], "--num-seeds", "2", "--shard-envs"]
+    flags += ["--total-timesteps", str(8 * 8 * 40), "--checkpoint-every", "0", "--coordinator-timeout", "5"]
+    processes = [
+        subprocess.Popen([sys.executable, "-c", FAILING_RUN, kind, str(process), *flags, *layout(port, index), "--out", str(out)],
+                         env=ENVIRONMENT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        for index in (0, 1)
+    ]  # fmt: skip
+    results = hosts_finished(processes, timeout=120)
+    failed, other = results[process], results[1 - process]
+    assert failed["code"] == (2 if kind == "full disk" else 1) and says in failed["stderr"], failed
+    assert kind != "full disk" or len(printed(failed)) == 1, failed  # its own one line; a traceback for the other
+    assert other["code"] == 2 and printed(other) == [
+        f"error: the run's processes lost one another: process {process} stopped on an error of its own (its output says "
+        "which); checkpoints written so far are kept, resume with the same command and --resume once every process is "
+        "back (--coordinator-timeout SECONDS waits longer)"
+    ], other
 
 
 # --------------------------------------------------------------------------------------------
