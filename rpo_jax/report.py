@@ -254,7 +254,9 @@ def read_directories(directories: Sequence[Path], pool: bool = False) -> tuple[l
     """The rows of every directory's results.csv and its population jobs. Each directory's
     variants are named after it where there are several, or, with `pool`, joined as one set of
     seeds (a seed in two directories is refused: it would count one run twice)."""
-    rows, jobs, found_in = [], {}, {}
+    rows, jobs, found_in, names = [], {}, {}, [directory.name for directory in directories]
+    if not pool and len(set(names)) < len(names):  # their variants would be named alike, and merge
+        raise UsageError(f"two directories named {max(names, key=names.count)} would merge their variants; rename one, or --pool")
     for directory in directories:
         prefix = f"{directory.name}: " if len(directories) > 1 and not pool else ""
         jobs.update(pbt_report.population_jobs(directory, prefix))

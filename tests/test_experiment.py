@@ -152,10 +152,16 @@ def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
     capsys.readouterr()
     assert report.main([str(uninterrupted), str(copy)]) == 2
     assert report.main([str(tmp_path / "missing")]) == 2
+    # Two directories of one name (runs/a/exp, runs/b/exp) would name their variants alike.
+    same_name = tmp_path / "elsewhere" / uninterrupted.name
+    shutil.copytree(uninterrupted, same_name)
+    assert report.main([str(uninterrupted), str(same_name), "--out", str(tmp_path / "merged")]) == 2
+    assert not (tmp_path / "merged").exists()
     errors = capsys.readouterr().err.splitlines()
     assert errors == [
         "error: --out is needed when overlaying several directories",
         f"error: {tmp_path / 'missing'} has no results.csv; give a directory written by rpo_jax.experiment",
+        f"error: two directories named {uninterrupted.name} would merge their variants; rename one, or --pool",
     ]
 
 
