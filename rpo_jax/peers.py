@@ -6,7 +6,7 @@ answering. Each process here instead beats in the key-value store of JAX's coord
 counter it increments) and reads the others' counters; a counter that has not moved for the
 timeout, or a coordinator that stops answering, ends the process with one line and exit code 2
 (its checkpoints stay, and the run resumes from them). JAX's heartbeat is set to fire later.
-A process that fails alone (`end_alone`) says so in the store before it leaves, and the others
+A process that fails alone (`leave`) says so in the store before it leaves, and the others
 end in one line naming it rather than wait for it inside a collective.
 """
 
@@ -28,11 +28,11 @@ from rpo_jax.errors import UsageError
 BEAT, FINISHED, FAILED, LEFT = "rpo_jax/beat/", "rpo_jax/finished/", "rpo_jax/failed/", "rpo_jax/left/"
 # How long process 0, which holds the coordinator, waits for the others' exits when all stop.
 LEAVE_WAIT_MS, LEAVE_GRACE_S = 30_000, 0.2
-# How long a process whose peer ended on an error of its own (`end_alone`) gives its own run to end
+# How long a process whose peer ended on an error of its own (`leave`) gives its own run to end
 # by itself before it ends in one line: a failure met by every process may reach it a moment later.
 FAILED_GRACE_S = 5.0
 # Set once this process is stopping for a reason it has printed, with the others (a run refused by
-# one of them) or alone (`end_alone`): a peer that exits first is then no news.
+# one of them) or alone (`leave`): a peer that exits first is then no news.
 _stopped = threading.Event()
 # What a collective's error says when a peer went away (gloo on CPUs; the coordination service).
 LOST_PEER_WORDS = ("Connection closed by peer", "Connection reset by peer", "Gloo", "UNAVAILABLE")
@@ -181,20 +181,23 @@ def stop_watching() -> None:
     atexit.register(_leave)  # registered after JAX's shutdown, so it runs before it
 
 
-def end_alone(code: int) -> None:
-    """Ends this process of several, which stops on its own with exit `code` (an error it has
-    printed, met by it alone) rather than together with the others (`stop_watching`): it says so in
-    the store, and the others, which would otherwise wait for it inside a collective until JAX's
-    shutdown aborts them all in C++, end in one line (`_watch`). It leaves at once, process 0 once
-    the others have read it. Nothing for one process, for code 0, or after a stop together."""
+def leave(code: int, alone: bool) -> None:
+    """Ends this process of several with exit `code` once its command has ended, having printed
+    what it had to. `alone`: it stops on an error met by it alone, which it says in the store, and
+    the others, which would otherwise wait for it inside a collective until JAX's shutdown aborts
+    them all in C++, end in one line (`_watch`). Otherwise its run has finished, or stopped as every
+    process's did (a diverged run): it says it finished. Either way it leaves without JAX's shutdown
+    of the distributed client, process 0 last: after every collective is done, that shutdown's
+    teardown sometimes ended a process with a C++ abort (benchmarks/RESULTS.md). Nothing for one
+    process, or after a stop agreed before (`stop_watching`, which leaves at exit)."""
     from jax._src import distributed
 
     client = distributed.global_state.client
-    if code == 0 or client is None or jax.process_count() == 1 or _stopped.is_set():
+    if client is None or jax.process_count() == 1 or _stopped.is_set():
         return
     _stopped.set()
     try:
-        client.key_value_set(f"{FAILED}{jax.process_index()}", "1")
+        client.key_value_set(f"{FAILED if alone else FINISHED}{jax.process_index()}", "1")
     except Exception:  # noqa: BLE001 - the coordinator gone already: the others find that out themselves
         pass
     _leave(code)
@@ -220,7 +223,7 @@ def _leave(code: int = 2) -> None:
 
 def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> None:
     last_change = {peer: (None, time.monotonic()) for peer in range(count) if peer != me}
-    failed_since: dict[int, float] = {}  # peer -> when its failure (`end_alone`) was first read
+    failed_since: dict[int, float] = {}  # peer -> when its failure (`leave`) was first read
     while True:
         # The store's calls may hang once process 0, which holds it, is gone: a timer ends them.
         unanswered = threading.Timer(timeout, _exit, (f"the coordinator {coordinator} stopped answering",))
@@ -251,7 +254,7 @@ def _watch(client: Any, me: int, count: int, coordinator: str, timeout: int) -> 
 
 
 def _end_after_failed(client: Any, me: int, failed_since: dict[int, float]) -> None:
-    """Ends this process in one line once a peer that ended on an error of its own (`end_alone`)
+    """Ends this process in one line once a peer that ended on an error of its own (`leave`)
     did so FAILED_GRACE_S ago, unless this process's own run ended meanwhile (a failure met by
     every process, this one a moment later), its own error then the one printed. Its word is left
     first for process 0, which may be the one that failed and waits for it."""
@@ -268,7 +271,7 @@ def _failed_alone(peer: int) -> str:
 
 
 def _failed_peer() -> int | None:
-    """The first other process that ended on an error of its own (`end_alone`), None for none
+    """The first other process that ended on an error of its own (`leave`), None for none
     (or a store that no longer answers)."""
     from jax._src import distributed
 
@@ -291,7 +294,7 @@ def _lost_peer_or(excepthook: Any) -> Any:
                 else f"a collective with the other processes failed ({str(error).strip().splitlines()[0][:160]})"
             )  # fmt: skip
         excepthook(kind, error, traceback)
-        end_alone(1)  # Python's exit code for an uncaught error
+        leave(1, alone=True)  # Python's exit code for an uncaught error
 
     return hook
 

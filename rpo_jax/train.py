@@ -161,11 +161,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The command line: exit code 0, 2 for bad input, 1 for a diverged run, 130 or 143 when Ctrl-C
     or SIGTERM stopped it (resumable)."""
     with command_failures(resume_line) as exit:
-        return run_command(sys.argv[1:] if argv is None else list(argv))
+        return leave(run_command(sys.argv[1:] if argv is None else list(argv)))
+    return leave(exit.code)
+
+
+def leave(code: int) -> int:
+    """`code`, after this process of several, if it is one, has left the others (`peers.leave`)."""
     peers = sys.modules.get("rpo_jax.peers")  # imported once JAX is: none before, no other process
-    if peers and exit.code != DIVERGED_EXIT:  # every process diverges at the same update, and stops by itself
-        peers.end_alone(exit.code)
-    return exit.code
+    if peers:  # every process diverges at the same update (they share the metrics): no failure of its own
+        peers.leave(code, alone=code not in (0, DIVERGED_EXIT))
+    return code
 
 
 def resume_line(out: object | None) -> str:

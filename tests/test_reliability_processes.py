@@ -153,7 +153,7 @@ def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(mo
 
 
 def test_a_peer_that_failed_ends_this_process_after_the_timeout_unless_it_ends_first(monkeypatch):
-    # Process 1 ended on an error of its own (peers.end_alone): process 0 gives its own run a
+    # Process 1 ended on an error of its own (peers.leave): process 0 gives its own run a
     # moment to end by itself, then ends in one line, its word left for a failed process 0.
     monkeypatch.setattr(peers, "FAILED_GRACE_S", 1.0)
     store, ended = Store({f"{peers.FAILED}1": "1"}), []
