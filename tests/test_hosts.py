@@ -64,21 +64,23 @@ def finished(processes: list[subprocess.Popen], timeout: float = 300) -> list[di
     """Each process's exit code, stdout and stderr. If one outlives the timeout, every process
     still running prints its threads' Python stacks (faulthandler, on SIGABRT) and the test fails
     with what each printed: a hang says where each process was."""
-    deadline, outputs = time.monotonic() + timeout, []
+    deadline, outputs, hung = time.monotonic() + timeout, [], False
     try:
         for process in processes:
             outputs.append(process.communicate(timeout=max(deadline - time.monotonic(), 0.1)))
     except subprocess.TimeoutExpired:
+        hung = True
         for process in processes[len(outputs) :]:
             if process.poll() is None:
                 process.send_signal(signal.SIGABRT)
         outputs += [process.communicate(timeout=60) for process in processes[len(outputs) :]]
-        results = [{"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)]
-        pytest.fail(f"the processes did not finish in {timeout} s\n{said(results)}", pytrace=False)
     finally:
         for process in processes:
             process.kill()
-    return [{"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)]
+    results = [{"code": process.returncode, "stdout": out, "stderr": err} for process, (out, err) in zip(processes, outputs)]
+    if hung:
+        pytest.fail(f"the processes did not finish in {timeout} s\n{said(results)}", pytrace=False)
+    return results
 
 
 def two_processes(args: list[str], outs: tuple[Path, Path]) -> list[dict]:
