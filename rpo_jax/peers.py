@@ -82,6 +82,7 @@ def join_processes(
         hint = "; outside a cluster job JAX detects (SLURM, Open MPI), give --coordinator, --num-processes and --process-id"
         hint = hint if detect else ""
         raise UsageError(f"could not join the run's processes ({detail}){hint}") from None
+    trace_identically()
     watch(coordinator or "of the cluster job", timeout)
     local_counts = sorted({len(devices_of(process)) for process in range(jax.process_count())})
     if len(local_counts) > 1:  # every process sees every device, so all refuse alike, with no collective
@@ -90,6 +91,18 @@ def join_processes(
             f"the processes hold {' or '.join(map(str, local_counts))} local devices; JAX's collectives need as many "
             "on each (the same --cpu-devices, or as many GPUs visible to each)"
         )
+
+
+def trace_identically() -> None:
+    """Makes every process trace the same program text for the same computation. XLA matches a
+    program's collectives across processes by a run id drawn from the compiled program, and JAX
+    writes each operation's source location into it: by default the whole Python stack, which
+    differs where the processes reach the trainer from different lines (process 0 alone writes
+    the run directory) or run from different directories (hosts). With JAX 0.12.1, processes whose
+    ids differ wait in their first collective forever. Only the operation's own line is kept here,
+    its file named without directories."""
+    jax.config.update("jax_include_full_tracebacks_in_locations", False)
+    jax.config.update("jax_hlo_source_file_canonicalization_regex", ".*/")
 
 
 def check_coordinator(coordinator: str, listens: bool) -> None:

@@ -109,12 +109,16 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
 def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> dict[str, Any]:
     """Runs `plan` with the TensorBoard sink, the progress display (on process 0, unless quiet),
     the tracker asked for and the compile cache unless turned off."""
+    import jax
+
     from rpo_jax import runner
     from rpo_jax.devices import is_primary
     from rpo_jax.sinks import ProgressDisplay, TensorBoardSink
 
     progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, tracking.quiet or not is_primary())
-    runner.use_compile_cache(processes.cache_directory)
+    # Off with several processes: with JAX 0.12.1 a program that process 0 reads from the cache and
+    # the others compile (only process 0 writes it) get different run ids, whose collectives never meet.
+    runner.use_compile_cache(processes.cache_directory if jax.process_count() == 1 else None)
     sinks: list[Any] = [TensorBoardSink()]
     if tracking.track == "wandb":
         from rpo_jax.tracking import WandbSink

@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 
+import jax
 import orbax.checkpoint as ocp
 import pytest
 from tensorboardX.event_file_writer import EventsWriter
@@ -175,6 +176,41 @@ def test_a_peer_that_failed_ends_this_process_after_the_timeout_unless_it_ends_f
     store.key_value_set(f"{peers.FINISHED}1", "1")
     watching.join(timeout=5)
     assert ended == [] and not watching.is_alive()
+
+
+# One computation reached from another line of its caller and from another directory, as process 0
+# and the others reach the trainer (process 0 alone writes the run directory), or hosts that
+# installed the code in different places.
+MODEL = "def loss(x):\n    return (x * 2.0).sum()\n"
+TRAINER = "def lower(jax, loss, x):\n    return jax.jit(loss).lower(x).as_text(debug_info=True)\n"
+CALLER = "def run(jax, lower, loss, x):\n    return lower(jax, loss, x)\n"
+
+
+def lowered_from(directory, blank_lines: int) -> str:
+    """`MODEL`'s loss lowered by `TRAINER`, called from line `blank_lines` + 2 of `CALLER`."""
+    code: dict = {}
+    for name, text in [("model.py", MODEL), ("trainer.py", TRAINER), ("main.py", "\n" * blank_lines + CALLER)]:
+        exec(compile(text, str(directory / name), "exec"), code)
+    return code["run"](jax, code["lower"], code["loss"], jax.numpy.ones(3))
+
+
+@pytest.fixture
+def jax_locations():
+    names = ("jax_include_full_tracebacks_in_locations", "jax_hlo_source_file_canonicalization_regex")
+    before = {name: getattr(jax.config, name) for name in names}
+    yield
+    for name, value in before.items():
+        jax.config.update(name, value)
+
+
+def test_processes_trace_one_computation_as_the_same_program_text(jax_locations, tmp_path):
+    """XLA matches a program's collectives across processes by a run id drawn from the compiled
+    program, its source locations included: with JAX 0.12.1, two processes whose programs differed
+    only there waited in their first collective forever."""
+    assert lowered_from(tmp_path / "a", 0) != lowered_from(tmp_path / "b", 3)  # JAX's default: the whole stack
+    peers.trace_identically()  # as peers.join_processes does
+    assert lowered_from(tmp_path / "a", 0) == lowered_from(tmp_path / "b", 3)
+    assert 'loc("model.py":2' in lowered_from(tmp_path / "a", 0)  # the operation's own line is kept
 
 
 # Runs one train command with one failure injected: `runner.write_rows` fails for a full disk
