@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import types
 
 import jax
 import orbax.checkpoint as ocp
@@ -26,6 +27,7 @@ from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished,
 
 from rpo_jax import peers, runner, train
 from rpo_jax.rundir import PARAMS_FILE, RunDir
+from rpo_jax.spec import Processes, Tracking, compile_cache_dir
 
 __all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
 
@@ -211,6 +213,19 @@ def test_processes_trace_one_computation_as_the_same_program_text(jax_locations,
     peers.trace_identically()  # as peers.join_processes does
     assert lowered_from(tmp_path / "a", 0) == lowered_from(tmp_path / "b", 3)
     assert 'loc("model.py":2' in lowered_from(tmp_path / "a", 0)  # the operation's own line is kept
+
+
+def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
+    # Only process 0 writes JAX's cache and the others' keys miss its entries: with JAX 0.12.1 a
+    # program read by process 0 and compiled by the others got run ids that never met.
+    used = []
+    monkeypatch.setattr(runner, "use_compile_cache", used.append)
+    monkeypatch.setattr(runner, "train", lambda plan, sinks, progress: {})
+    plan = types.SimpleNamespace(config=types.SimpleNamespace(num_updates=1, batch_size=1))
+    for count in (1, 2):
+        monkeypatch.setattr(jax, "process_count", lambda count=count: count)
+        train.train_with_display(plan, Tracking(quiet=True), Processes())
+    assert used == [compile_cache_dir(), None]
 
 
 # Runs one train command with one failure injected: `runner.write_rows` fails for a full disk
