@@ -216,21 +216,23 @@ def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
 
 
 @pytest.mark.slow  # 18 s of learning; evaluate stays in test_user_envs and test_reliability
-def test_evaluation_of_a_trained_policy_beats_a_random_one(uninterrupted, capsys):
-    run_dir = job_dir(uninterrupted, "rpo")
+def test_evaluation_of_trained_policies_beats_a_random_one(uninterrupted, capsys):
     env = envs.make_env("cartpole")
     key = jax.random.PRNGKey(7)
-    trained = evaluate.episode_returns(env, load_policy(run_dir, run=0), 32, key, deterministic=True)
+    # PPO's runs: at 12,800 steps RPO's exploration is still wide and its seeds may not have learned
+    # yet (its two evaluated 49 and 96, 45 and 474, 79 and 475 in three measurements; PPO's 470-499).
+    runs = [load_policy(job_dir(uninterrupted, "ppo"), run=run) for run in (0, 1)]
+    trained = np.stack([evaluate.episode_returns(env, policy, 32, key, deterministic=True) for policy in runs])
 
     def random_policy(obs, key, deterministic):
         return jax.random.uniform(key, obs.shape[:-1] + (1,), minval=-1.0, maxval=1.0)
 
     uniform = evaluate.episode_returns(env, random_policy, 32, key, deterministic=False)
-    assert trained.shape == uniform.shape == (32,)
-    # Measured: trained about 470, uniform random actions about 10 (episodes end within ~20 steps).
-    assert trained.mean() > 200 and uniform.mean() < 50
+    assert trained.shape == (2, 32) and uniform.shape == (32,)
+    # Measured: trained 470-499 in each run, uniform random actions about 4 (episodes end within ~20 steps).
+    assert trained.mean(axis=1).min() > 200 and uniform.mean() < 50
 
-    assert evaluate.main([str(run_dir), "--episodes", "8"]) == 0  # deterministic by default
+    assert evaluate.main([str(job_dir(uninterrupted, "rpo")), "--episodes", "8"]) == 0  # deterministic by default
     assert "cartpole run 0 (seed 1), deterministic policy: return" in capsys.readouterr().out
 
 
