@@ -108,7 +108,7 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
 
 def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> dict[str, Any]:
     """Runs `plan` with the TensorBoard sink, the progress display (on process 0, unless quiet),
-    the tracker asked for and the compile cache unless turned off."""
+    the tracker asked for and the compile cache unless turned off or several processes train."""
     import jax
 
     from rpo_jax import runner
