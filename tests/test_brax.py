@@ -21,3 +21,19 @@ def test_brax_inverted_pendulum_trains_through_the_protocol():
     # with Brax's reward of 1 per step, so the mean return equals the mean length.
     assert int(np.asarray(metrics.episodes_finished).sum()) > 0
     np.testing.assert_allclose(metrics.episode_return, metrics.episode_length, rtol=1e-5)
+
+
+def test_brax_fluid_drag_gets_a_clip_that_takes_the_names_it_passes():
+    # Brax 0.14.2's fluid drag (Swimmer's viscosity) calls jnp.clip(x, a_min=...), which JAX 0.10
+    # removed: brax/swimmer raised a TypeError in every step. The slow check_env of every
+    # registered environment steps Swimmer itself.
+    from brax import fluid
+
+    from rpo_jax.envs.brax import NUMPY_WITH_OLD_CLIP as jp
+
+    x = jax.numpy.array([-1.0, 0.5, 2.0])
+    np.testing.assert_array_equal(jp.clip(x, a_min=0.0), [0.0, 0.5, 2.0])
+    np.testing.assert_array_equal(jp.clip(x, 0.0, 1.0), [0.0, 0.5, 1.0])
+    assert jp.sqrt is jax.numpy.sqrt
+    envs.make_env("brax/inverted_pendulum")
+    assert fluid.jp is jp

@@ -34,13 +34,31 @@ def _spec(name: str, observation_size: int, action_size: int, backend: str) -> E
 SPECS = {f"brax/{name}": _spec(name, *facts) for name, facts in BRAX_SPECS.items()}
 
 
+class _NumpyWithOldClip:
+    """`jax.numpy`, whose `clip` also takes the `a_min` and `a_max` that JAX 0.10 removed: Brax
+    0.14.2's fluid drag (`brax.fluid`, which Swimmer's viscosity uses) still passes `a_min`, and
+    `brax/swimmer` raised a TypeError in every step."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(jax.numpy, name)
+
+    @staticmethod
+    def clip(arr: jax.Array, min: Any = None, max: Any = None, *, a_min: Any = None, a_max: Any = None) -> jax.Array:
+        return jax.numpy.clip(arr, a_min if min is None else min, a_max if max is None else max)
+
+
+NUMPY_WITH_OLD_CLIP = _NumpyWithOldClip()
+
+
 class BraxEnv(DoneIsTermination):
     """One of Brax's own environments (`brax/<name>`), with Brax's usual 1000-step episodes."""
 
     def __init__(self, name: str, backend: str | None = None) -> None:
-        from brax import envs as brax_envs
+        from brax import envs as brax_envs, fluid
 
         from rpo_jax.envs.mjx_support import models_on_this_process
+
+        fluid.jp = NUMPY_WITH_OLD_CLIP
 
         kwargs = {"backend": backend} if backend else {}
         # Brax's observation_size resets the environment, which puts MJX data too.
