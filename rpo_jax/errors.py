@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import socket
 import sys
 import threading
 from typing import Callable, Iterator
@@ -72,6 +73,52 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+# How long a stop may take to take effect before the user is told it is coming: Python's own
+# handler acts within milliseconds unless the main thread is inside a compiled program.
+STOP_NOTICE_AFTER_S = 3.0
+
+
+@contextlib.contextmanager
+def stop_notice() -> Iterator[None]:
+    """Within the block, Ctrl-C or SIGTERM that has not stopped the command within
+    STOP_NOTICE_AFTER_S prints one line saying the stop is coming. Python runs a signal's handler
+    only between its own instructions, so while the main thread waits on a compiled chunk of
+    updates (minutes, in a long run) the stop waits with it and nothing would show that it was
+    taken. The interpreter's C handler writes the signal's number to the wakeup descriptor at once;
+    a watcher thread reads it there. Elsewhere than the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    reader, writer = socket.socketpair()
+    writer.setblocking(False)  # the C handler must never block
+    previous = signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+    stopped = threading.Event()
+    watcher = threading.Thread(target=_watch_stops, args=(reader, stopped), name="stop-notice", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        stopped.set()
+        signal.set_wakeup_fd(previous)
+        writer.close()  # the watcher reads the end of the stream and returns
+        watcher.join()
+        reader.close()
+
+
+def _watch_stops(reader: socket.socket, stopped: threading.Event) -> None:
+    while signals := reader.recv(16):
+        names = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+        taken = [names[number] for number in signals if number in names]
+        if taken and not stopped.wait(STOP_NOTICE_AFTER_S):
+            print(
+                f"{taken[0]} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end)",
+                file=sys.stderr,
+                flush=True,
+            )
+            stopped.wait()
+            return
+
+
 def usage_failure(error: UsageError) -> int:
     """Prints `error` as the one line the user sees and returns the exit code for bad input."""
     print(f"error: {error}", file=sys.stderr)
@@ -109,14 +156,18 @@ def command_failures(resume: Callable[[object | None], str] | None = None) -> It
     2 for bad input or a failure of the file system, 1 for a diverged run. `resume`, for a command
     that trains, says what continues its run given the run directory (None: stopped before one
     was made); with it, SIGTERM stops the body as Ctrl-C does and both exit with 130 or 143 and
-    that line. Without it, Ctrl-C and SIGTERM keep Python's own behaviour. Every command's main:
+    that line, and a stop that waits on a compiled chunk says so at once (`stop_notice`). Without
+    it, Ctrl-C and SIGTERM keep Python's own behaviour. Every command's main:
 
         with command_failures() as exit:
             ...
         return exit.code
     """
     exit = ExitCode()
-    with sigterm_as_interrupt() if resume else contextlib.nullcontext():
+    with (
+        sigterm_as_interrupt() if resume else contextlib.nullcontext(),
+        stop_notice() if resume else contextlib.nullcontext(),
+    ):
         try:
             yield exit
         except UsageError as error:

@@ -68,6 +68,17 @@ RECORDED = {
         "6793879d4cbaa85addf3f1bca982405ae4ffad4b0e2367e75bd363e925016bd3",
         "99057fcf9fe40b57380878b87ffa4de42f32df9502dd506f99d9437fce0626f5",
     ),
+    # Intel Xeon with AVX-512 and AMX (2 cores, KVM), the suite's flags, Python 3.11.7, jax/jaxlib 0.10.2,
+    # numpy 2.4.6, mujoco 4.0.1
+    "3c85245b271c1a59": (
+        "124dbf4d354311e19722185d3f2c25f9402a0bf22009422128fe1b8964aea46b",
+        "9de05c0beff0b8f428fca5b2f5e9b69858340b2158a7b9c7f148e24d75a5e68e",
+    ),
+    # the same machine and flags, Python 3.13.0, jax/jaxlib 0.12.1, numpy 2.5.5, mujoco 4.0.1
+    "c919bf820af87af5": (
+        "20f3ab50ad9bfb6622aab73a1233fadd910a518a3fc7057b0cb4c3b35ede8e5c",
+        "8b8b40bc3fb4dc0d79560402e86b4a282bf9b6974a4972773e8704dd8aaab697",
+    ),
 }
 
 

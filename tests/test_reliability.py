@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -23,7 +24,7 @@ import numpy as np
 import pytest
 from point_mass import PointMass
 
-from rpo_jax import envs, evaluate, experiment, records, report, runner, train
+from rpo_jax import envs, errors, evaluate, experiment, records, report, runner, train
 from rpo_jax.checkpoint import CheckpointDamaged, Checkpointer
 from rpo_jax.config import Config
 from rpo_jax.envs import registry
@@ -624,6 +625,37 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
     assert signal.getsignal(signal.SIGTERM) is before
     monkeypatch.setattr(runner, "compile_runs", compile_runs)
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
+
+
+def busy_program(seconds: float):
+    """A compiled program whose result the main thread waits for, about `seconds`, as the trainer
+    waits for a chunk's metrics (`np.asarray`, unlike `block_until_ready`, takes no signal meanwhile)."""
+    program = jax.jit(lambda m, n: jax.lax.fori_loop(0, n, lambda i, a: jnp.tanh(a @ a), m))
+    m = jnp.full((256, 256), 0.01)
+    program(m, 1).block_until_ready()  # compiled once: the count is traced
+    start = time.perf_counter()
+    program(m, 50).block_until_ready()
+    count = int(seconds * 50 / (time.perf_counter() - start))
+    return lambda: np.asarray(program(m, count))
+
+
+@pytest.mark.parametrize(
+    "signum, name, ends", [(signal.SIGTERM, "SIGTERM", "terminated"), (signal.SIGINT, "Ctrl-C", "interrupted")]
+)
+def test_a_stop_during_a_compiled_chunk_is_announced_at_once_and_taken_at_its_end(capsys, monkeypatch, signum, name, ends):
+    """Python runs no handler while the main thread waits on a compiled program: the stop comes
+    when it returns, and a line says so meanwhile (after 0.2 s here, the program taking 2 s)."""
+    monkeypatch.setattr(errors, "STOP_NOTICE_AFTER_S", 0.2)
+    chunk = busy_program(2.0)
+    with errors.command_failures(resume=lambda out: "continue with: X") as exit:
+        threading.Timer(0.1, os.kill, (os.getpid(), signum)).start()
+        chunk()
+        time.sleep(5)  # not reached: the stop is taken once the program returns
+    assert exit.code == 128 + signum
+    lines = capsys.readouterr().err.splitlines()
+    notice = f"{name} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end)"
+    assert lines == [notice, f"{ends}; continue with: X"]
+    assert signal.set_wakeup_fd(-1) == -1  # no descriptor left behind
 
 
 # --------------------------------------------------------------------------------------------
