@@ -105,10 +105,12 @@ def stop_notice() -> Iterator[None]:
         reader.close()
 
 
+_STOP_NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+
+
 def _watch_stops(reader: socket.socket, stopped: threading.Event) -> None:
-    while signals := reader.recv(16):
-        names = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
-        taken = [names[number] for number in signals if number in names]
+    while signals := reader.recv(16):  # b"" once the writer is closed
+        taken = [_STOP_NAMES[number] for number in signals if number in _STOP_NAMES]
         if taken and not stopped.wait(STOP_NOTICE_AFTER_S):
             print(
                 f"{taken[0]} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end)",
@@ -156,7 +158,7 @@ def command_failures(resume: Callable[[object | None], str] | None = None) -> It
     2 for bad input or a failure of the file system, 1 for a diverged run. `resume`, for a command
     that trains, says what continues its run given the run directory (None: stopped before one
     was made); with it, SIGTERM stops the body as Ctrl-C does and both exit with 130 or 143 and
-    that line, and a stop that waits on a compiled chunk says so at once (`stop_notice`). Without
+    that line, and a stop that waits on a compiled chunk says so meanwhile (`stop_notice`). Without
     it, Ctrl-C and SIGTERM keep Python's own behaviour. Every command's main:
 
         with command_failures() as exit:

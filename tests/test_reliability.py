@@ -642,7 +642,7 @@ def busy_program(seconds: float):
 @pytest.mark.parametrize(
     "signum, name, ends", [(signal.SIGTERM, "SIGTERM", "terminated"), (signal.SIGINT, "Ctrl-C", "interrupted")]
 )
-def test_a_stop_during_a_compiled_chunk_is_announced_at_once_and_taken_at_its_end(capsys, monkeypatch, signum, name, ends):
+def test_a_stop_during_a_compiled_chunk_is_announced_while_it_waits_and_taken_at_its_end(capsys, monkeypatch, signum, name, ends):
     """Python runs no handler while the main thread waits on a compiled program: the stop comes
     when it returns, and a line says so meanwhile (after 0.2 s here, the program taking 2 s)."""
     monkeypatch.setattr(errors, "STOP_NOTICE_AFTER_S", 0.2)
