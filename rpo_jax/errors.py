@@ -117,8 +117,7 @@ def _watch_stops(reader: socket.socket, stopped: threading.Event) -> None:
                 file=sys.stderr,
                 flush=True,
             )
-            stopped.wait()
-            return
+            return  # once is enough; later signals' bytes stay unread in the closed pair
 
 
 def usage_failure(error: UsageError) -> int:
