@@ -16,7 +16,7 @@ from rpo_jax import aggregate
 DPI = 110
 SUFFIXES = (".png", ".pdf")  # what `_save` writes of each figure
 # A logged update in which no episode finished repeats the last finished episodes' return and
-# length (`ppo.Metrics`): such points are not measurements and are left out of the curves.
+# length (`ppo.Metrics`): the curves leave out the rows that only repeat (`episode_rows`).
 EPISODE_METRICS = ("episode_return", "episode_length")
 # Colour families of populations (matplotlib's sequential colour maps): population k's members
 # are shades of FAMILIES[k].
@@ -24,7 +24,8 @@ FAMILIES = ("Blues", "Oranges", "Greens", "Purples", "Reds", "Greys")
 CURVES_CAPTION = (
     "Lines: mean over seeds (n seeds per curve in the legend); bands: {confidence:.0%} bootstrap confidence "
     "interval of the mean ({resamples} resamples); thin lines: the single seeds, where too few (< {needed}) for "
-    "an interval. Return and length only at updates in which an episode finished in every seed."
+    "an interval. Return and length: each seed's most recent episodes, at the logged updates where some seed's "
+    "ended since its previous logged update."
 )
 
 
@@ -63,15 +64,32 @@ def _save(fig: Any, path: Path, rect: tuple[float, float, float, float] = (0, 0,
     return path.name
 
 
+def episode_rows(runs: list[list[dict]], metric: str) -> np.ndarray:
+    """[rows] bool: the logged rows at which to draw an episode `metric` of `runs` (each cut to
+    the same length). A row carries the mean over the episodes that ended in its update or, where
+    none did, over the last that ended before (`ppo.Metrics`, 0 before the first): every run's most
+    recent episodes. A row is drawn once every run has ended an episode and where some run's
+    episodes ended since its previous row (in the row's own update, or its value changed), so that
+    rows logged every few updates keep the episodes of their interval while a row that only
+    repeats every run's previous value, a flat step, is left out."""
+    values = np.array([[row[metric] for row in run] for run in runs], float)
+    ended = np.array([[row["episodes_finished"] > 0 for row in run] for run in runs], bool)
+    previous = np.concatenate([np.zeros((len(runs), 1)), values[:, :-1]], axis=1)
+    new = ended | (values != previous)
+    started = np.logical_or.accumulate(ended | (values != 0), axis=1)
+    return started.all(axis=0) & new.any(axis=0)
+
+
 def finished_points(runs: list[list[dict]], metric: str) -> tuple[np.ndarray, np.ndarray]:
     """The steps [points] and values [runs, points] of `metric` over the updates all runs
-    logged; for an episode metric only the updates in which every run finished an episode."""
+    logged; for an episode metric only the rows `episode_rows` draws."""
     length = min(len(run) for run in runs)
-    steps = np.array([row["env_steps"] for row in runs[0][:length]])
-    values = np.array([[row[metric] for row in run[:length]] for run in runs], float)
+    runs = [run[:length] for run in runs]
+    steps = np.array([row["env_steps"] for row in runs[0]])
+    values = np.array([[row[metric] for row in run] for run in runs], float)
     if metric in EPISODE_METRICS:
-        finished = np.all([[row["episodes_finished"] > 0 for row in run[:length]] for run in runs], axis=0)
-        steps, values = steps[finished], values[:, finished]
+        drawn = episode_rows(runs, metric)
+        steps, values = steps[drawn], values[:, drawn]
     return steps, values
 
 
@@ -161,7 +179,7 @@ def population_returns(
 ) -> str:  # fmt: skip
     """One panel per population (`labels` their titles): each member's episode return against
     environment steps in the population's colour family, the member `best[k]` drawn thick and
-    named in the legend. Only updates in which the member finished an episode are drawn."""
+    named in the legend, at the rows `episode_rows` draws."""
     plt = pyplot()
     fig, axes = plt.subplots(1, len(populations), figsize=(5.5 * len(populations), 4.4), squeeze=False)
     for number, (axis, members, label) in enumerate(zip(axes[0], populations, labels)):

@@ -95,7 +95,8 @@ def best_index(members: Sequence[list[dict]]) -> int:
 def mean_rows(members: Sequence[list[dict]], variant: str, seed: float) -> list[dict]:
     """The population's mean member: at every update all members logged, each measured column
     averaged over them (the evaluation return where all were evaluated), episodes counted as
-    finished where every member finished one."""
+    finished where every member finished one (the curves also draw a mean row whose value
+    differs from its predecessor's: `figures.episode_rows`)."""
     rows = []
     for logged in zip(*members):
         row = {**logged[0], "variant": variant, "seed": seed}

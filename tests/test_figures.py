@@ -1,5 +1,5 @@
 """The report's figures: written as PNG and PDF, bands that are bootstrap intervals of the mean,
-no carried-forward returns, plain tick labels, and statistics too few seeds cannot estimate."""
+no returns carried forward from an earlier row, plain tick labels, and statistics too few seeds cannot estimate."""
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -15,15 +15,17 @@ STEPS = 250_000  # per update: ticks fall on 500k, 1M, 1.5M, 2M
 
 def rows_of(variant: str, algo: str, finals: list[float], unfinished: frozenset = frozenset()) -> list[dict]:
     """results.csv rows of one environment: seed s of `finals` returns finals[s] * update / UPDATES,
-    its entropy 1 + s; in the (seed index, update) pairs of `unfinished` no episode finished."""
+    its entropy 1 + s; in the (seed index, update) pairs of `unfinished` no episode finished, and
+    the row repeats the previous return, as the trainer carries it forward."""
     rows = []
     for index, final in enumerate(finals):
         for update in range(1, UPDATES + 1):
             row = dict.fromkeys(report.COLUMNS, 0.0)
             row.update(experiment="x", env="cartpole", variant=variant, algo=algo, dist="gaussian", seed=float(index + 1))
-            finished = 0.0 if (index, update) in unfinished else 4.0
-            row.update(update=float(update), env_steps=float(update * STEPS), episodes_finished=finished)
-            row.update(episode_return=final * update / UPDATES, policy_entropy=1.0 + index)
+            finished = (index, update) not in unfinished
+            row.update(update=float(update), env_steps=float(update * STEPS), episodes_finished=4.0 * finished)
+            carried = rows[-1]["episode_return"] if update > 1 else 0.0
+            row.update(episode_return=final * update / UPDATES if finished else carried, policy_entropy=1.0 + index)
             rows.append(row)
     return rows
 
@@ -87,14 +89,33 @@ def test_too_few_seeds_for_an_interval_draw_the_seeds_instead_of_a_band(tmp_path
     assert len(fig.axes[0].get_lines()) == 1 + 3  # the mean and each seed
 
 
-def test_curves_leave_out_updates_in_which_no_episode_finished(tmp_path, drawn):
-    # Seed 0 finishes nothing in updates 3 and 4, seed 2 nothing in update 7: their returns there
-    # are the previous ones carried forward.
-    unfinished = frozenset({(0, 3), (0, 4), (2, 7)})
-    fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", [100.0, 200.0, 300.0, 400.0], unfinished)}, drawn)
+def test_curves_leave_out_rows_that_only_repeat_and_those_before_every_seed_ended_an_episode(tmp_path, drawn):
+    # No seed ends an episode in update 1 (returns 0, nothing yet) nor in updates 3 and 4 (each
+    # repeats update 2's return); only seed 2 ends none in update 7, where its update-6 return stands.
+    unfinished = frozenset({(seed, update) for seed in range(4) for update in (1, 3, 4)} | {(2, 7)})
+    finals = [100.0, 200.0, 300.0, 400.0]
+    fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", finals, unfinished)}, drawn)
     returns, entropy = (axis.get_lines()[0] for axis in fig.axes[:2])
-    assert list(returns.get_xdata()) == [update * STEPS for update in (1, 2, 5, 6, 8)]
+    assert list(returns.get_xdata()) == [update * STEPS for update in (2, 5, 6, 7, 8)]
+    at_update_7 = [final * (6 if seed == 2 else 7) / UPDATES for seed, final in enumerate(finals)]
+    assert returns.get_ydata()[3] == pytest.approx(np.mean(at_update_7))
     assert list(entropy.get_xdata()) == [update * STEPS for update in range(1, UPDATES + 1)]  # never carried
+
+
+def test_rows_logged_every_few_updates_keep_returns_carried_from_within_their_interval():
+    # Rows every fourth update, episodes that end in one update of four (a DMC episode at the paper
+    # preset): a row whose own update ended none carries the return of an earlier update of its
+    # interval, the run's most recent episodes; a sparse task's run that keeps returning exactly 0
+    # repeats its value, and is drawn beside the other run's new one.
+    def run(returns, ended):
+        rows = zip(returns, ended)
+        return [{"env_steps": float(i), "episodes_finished": e, "episode_return": r} for i, (r, e) in enumerate(rows)]
+
+    learning = run([0.0, 12.5, 12.5, 12.5, 30.0], [0, 0, 8, 0, 0])
+    stuck = run([0.0, 0.0, 0.0, 0.0, 0.0], [0, 8, 0, 0, 0])
+    assert list(figures.episode_rows([learning], "episode_return")) == [False, True, True, False, True]
+    steps, values = figures.finished_points([learning, stuck], "episode_return")
+    assert list(steps) == [1.0, 2.0, 4.0] and values.tolist() == [[12.5, 12.5, 30.0], [0.0, 0.0, 0.0]]
 
 
 def test_step_ticks_are_plain_numbers_without_an_offset(tmp_path, drawn):
