@@ -1,17 +1,23 @@
 """What the host makes of each chunk's numbers: metrics.jsonl's rows, the first non-finite
-quantity of a diverged run, and summary.json's returns over the runs and their spread."""
+quantity of a diverged run, summary.json's returns over the runs and their spread, the run's
+seconds by what they were spent on (`Clock`), and the checkpoints between chunks with their
+records, the one a stop leaves included (`checkpoint_on_stop`)."""
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+import contextlib
+import time
+from typing import Any, Iterator, Sequence
 
 import jax
 import numpy as np
 
-from rpo_jax import ppo
+from rpo_jax import devices, ppo
+from rpo_jax.checkpoint import Checkpointer
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.diagnostics import Diagnostics
-from rpo_jax.plan import RunPlan
+from rpo_jax.plan import RunPlan, training_record
+from rpo_jax.rundir import sync
 from rpo_jax.scores import sample_std, tail_mean
 
 
@@ -149,3 +155,67 @@ def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float 
         found[f"{name}_mean"], found[f"{name}_n"] = float(np.mean(values)), len(values)
         found[f"{name}_std"] = None if np.isnan(std) else std
     return found
+
+
+class Clock:
+    """The seconds of a run by what they were spent on: training (the chunks and the host's work
+    between them), evaluation (with its compile), videos (drawing and writing them, with their
+    compile), checkpointing and tracking (the sinks' writes and the progress display, between
+    chunks), so that train_seconds and steps/s count training only. A resumed run's go on from
+    its checkpoint's record."""
+
+    KINDS = ("train_seconds", "eval_seconds", "video_seconds", "checkpoint_seconds", "tracking_seconds")
+
+    def __init__(self, record: dict[str, Any]) -> None:
+        self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
+        self.last = time.perf_counter()
+
+    def lap(self, kind: str) -> None:
+        """Counts the seconds since the last lap as `kind`'s."""
+        now = time.perf_counter()
+        self.seconds[kind] += now - self.last
+        self.last = now
+
+
+class StopCheckpoint:
+    """What a stop checkpoints: `logged`, the last chunk whose rows were logged as (state, update,
+    metrics.jsonl's size), None where a checkpoint holds it (or is being written)."""
+
+    logged: tuple[ppo.TrainState, int, int] | None = None
+
+
+@contextlib.contextmanager
+def checkpoint_on_stop(
+    plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
+) -> Iterator[StopCheckpoint]:  # fmt: skip
+    """On Ctrl-C or SIGTERM in the block, checkpoints the `StopCheckpoint`'s `logged` chunk before
+    the stop goes on, so that it loses only the chunk under way rather than every update since the
+    last checkpoint. One process only: several would all have to take part in the write."""
+    stop = StopCheckpoint()
+    try:
+        yield stop
+    except KeyboardInterrupt:
+        if checkpointer and stop.logged and jax.process_count() == 1:
+            clock.last = time.perf_counter()  # the chunk under way trains again after the resume: not the record's seconds
+            with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
+                save_checkpoint(plan, placement, checkpointer, metrics_file, clock, *stop.logged)
+        raise
+
+
+def save_checkpoint(
+    plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer, metrics_file: Any, clock: Clock,
+    state: ppo.TrainState, update: int, metrics_bytes: int | None = None,
+) -> None:  # fmt: skip
+    """Checkpoints `state` after `update` with its record: metrics.jsonl's size (`metrics_bytes`,
+    default all of it: rows logged after it are cut at the resume) and checksum, the seconds so far
+    and what the run was trained with; its own seconds counted as checkpointing."""
+    clock.lap("train_seconds")
+    synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+    metrics_bytes = synced if metrics_bytes is None else metrics_bytes
+    metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
+    checkpointer.save(
+        update, placement.checkpoint_state(state),
+        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **clock.seconds,
+         "trained_with": training_record(plan)},
+    )  # fmt: skip
+    clock.lap("checkpoint_seconds")

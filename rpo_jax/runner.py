@@ -32,10 +32,13 @@ from rpo_jax.config import SWEEPABLE
 from rpo_jax.devices import is_primary
 from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
-from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label, training_record
+from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label
 from rpo_jax.policy import params_bytes
-from rpo_jax.records import divergence_message, first_nonfinite, logged_rows, progress_metrics, record_returns, summarise
-from rpo_jax.rundir import RunDir, hold_lock, sync, write_rows
+from rpo_jax.records import (
+    Clock, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows, progress_metrics, record_returns,
+    save_checkpoint, summarise,
+)  # fmt: skip
+from rpo_jax.rundir import RunDir, hold_lock, write_rows
 
 
 class Sink(Protocol):
@@ -332,26 +335,6 @@ def due_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint: 
     )
 
 
-class Clock:
-    """The seconds of a run by what they were spent on: training (the chunks and the host's work
-    between them), evaluation (with its compile), videos (drawing and writing them, with their
-    compile), checkpointing and tracking (the sinks' writes and the progress display, between
-    chunks), so that train_seconds and steps/s count training only. A resumed run's go on from
-    its checkpoint's record."""
-
-    KINDS = ("train_seconds", "eval_seconds", "video_seconds", "checkpoint_seconds", "tracking_seconds")
-
-    def __init__(self, record: dict[str, Any]) -> None:
-        self.seconds = {kind: float(record.get(kind, 0.0)) for kind in self.KINDS}
-        self.last = time.perf_counter()
-
-    def lap(self, kind: str) -> None:
-        """Counts the seconds since the last lap as `kind`'s."""
-        now = time.perf_counter()
-        self.seconds[kind] += now - self.last
-        self.last = now
-
-
 def train_chunks(
     plan: RunPlan, compiled: Compiled, runs: list[dict[str, Any]], sinks: Sequence[Sink],
     progress: ProgressFn | None, logged_returns: dict[str, list[list[float]]],
@@ -363,7 +346,10 @@ def train_chunks(
     clock, last_checkpoint = Clock(record), record["update"]
     steps_before, trained_before = record["update"] * config.batch_size, clock.seconds["train_seconds"]  # this process's
     # Only process 0 logs (None: another process); every process computes the same rows.
-    with plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file:
+    with (
+        plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file,
+        checkpoint_on_stop(plan, compiled.placement, checkpointer, metrics_file, clock) as stop,
+    ):
         pending = compiled.run_chunk(state) if record["update"] < config.num_updates else None
         try:
             for first_update in range(record["update"], config.num_updates, chunk):
@@ -378,8 +364,7 @@ def train_chunks(
                 clock.lap("train_seconds")
                 steps_done = updates_done * config.batch_size
                 sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
-                if nonfinite:
-                    stop_diverged(plan, runs, metrics, first_update, nonfinite, sps, last_checkpoint, metrics_file)
+                stop_if_diverged(plan, runs, metrics, first_update, nonfinite, sps, last_checkpoint, metrics_file)
                 eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock, due)
                 rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
                 if metrics_file:
@@ -389,8 +374,9 @@ def train_chunks(
                 if due.evolve:  # before the checkpoint holds it
                     scored = (metrics.episode_return, logged_returns["eval_return"])
                     state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
+                stop.logged = None if due.checkpoint else (state, updates_done, metrics_file.tell() if metrics_file else 0)
                 if due.checkpoint:
-                    save_checkpoint(plan, compiled, checkpointer, state, updates_done, metrics_file, clock)
+                    save_checkpoint(plan, compiled.placement, checkpointer, metrics_file, clock, state, updates_done)
                     last_checkpoint = updates_done
                 if pending is None and updates_done < config.num_updates:
                     pending = compiled.run_chunk(state)
@@ -404,11 +390,14 @@ def train_chunks(
     return state, clock.seconds
 
 
-def stop_diverged(
-    plan: RunPlan, runs: list[dict[str, Any]], metrics: ppo.Metrics, first_update: int, nonfinite: tuple[int, int, list[str]],
-    sps: float, last_checkpoint: int, metrics_file: Any,
+def stop_if_diverged(
+    plan: RunPlan, runs: list[dict[str, Any]], metrics: ppo.Metrics, first_update: int,
+    nonfinite: tuple[int, int, list[str]] | None, sps: float, last_checkpoint: int, metrics_file: Any,
 ) -> None:  # fmt: skip
-    """Logs the chunk's finite updates, those before `nonfinite`'s, and raises Diverged: the rest are not kept."""
+    """Where the chunk met a non-finite number (`nonfinite`), logs its finite updates, those before
+    it, and raises Diverged: the rest are not kept."""
+    if nonfinite is None:
+        return
     if metrics_file:
         write_rows(metrics_file, logged_rows(plan, runs, metrics, first_update, nonfinite[0], sps))
     raise Diverged(divergence_message(plan, runs, first_update, nonfinite, last_checkpoint))
@@ -430,20 +419,3 @@ def track_chunk(
     if progress:
         progress(steps, metrics)
         clock.lap("tracking_seconds")
-
-
-def save_checkpoint(
-    plan: RunPlan, compiled: Compiled, checkpointer: Checkpointer, state: ppo.TrainState, update: int,
-    metrics_file: Any, clock: Clock,
-) -> None:  # fmt: skip
-    """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
-    seconds so far and what the run was trained with; its own seconds counted as checkpointing."""
-    clock.lap("train_seconds")
-    metrics_bytes = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
-    metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
-    checkpointer.save(
-        update, compiled.placement.checkpoint_state(state),
-        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **clock.seconds,
-         "trained_with": training_record(plan)},
-    )  # fmt: skip
-    clock.lap("checkpoint_seconds")
