@@ -178,17 +178,23 @@ class Clock:
 
 
 class StopCheckpoint:
-    """What a stop checkpoints: `logged`, the last chunk whose rows were logged as (state, update,
-    metrics.jsonl's size), None where a checkpoint holds it (or is being written)."""
+    """What a stop checkpoints (`checkpoint_on_stop`): the last chunk whose rows were logged, with
+    metrics.jsonl's size and the run's seconds then; None where a checkpoint holds it."""
 
-    logged: tuple[ppo.TrainState, int, int] | None = None
+    def __init__(self) -> None:
+        self.logged: tuple[ppo.TrainState, int, int, dict[str, float]] | None = None
+
+    def hold(self, state: ppo.TrainState | None, update: int, metrics_file: Any, clock: Clock) -> None:
+        """After a chunk's rows are logged: `state` after `update`, or None where it is checkpointed."""
+        size = metrics_file.tell() if metrics_file else 0
+        self.logged = None if state is None else (state, update, size, dict(clock.seconds))
 
 
 @contextlib.contextmanager
 def checkpoint_on_stop(
     plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
 ) -> Iterator[StopCheckpoint]:  # fmt: skip
-    """On Ctrl-C or SIGTERM in the block, checkpoints the `StopCheckpoint`'s `logged` chunk before
+    """On Ctrl-C or SIGTERM in the block, checkpoints the chunk the `StopCheckpoint` holds before
     the stop goes on, so that it loses only the chunk under way rather than every update since the
     last checkpoint. One process only: several would all have to take part in the write."""
     stop = StopCheckpoint()
@@ -196,7 +202,6 @@ def checkpoint_on_stop(
         yield stop
     except KeyboardInterrupt:
         if checkpointer and stop.logged and jax.process_count() == 1:
-            clock.last = time.perf_counter()  # the chunk under way trains again after the resume: not the record's seconds
             with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
                 save_checkpoint(plan, placement, checkpointer, metrics_file, clock, *stop.logged)
         raise
@@ -204,18 +209,19 @@ def checkpoint_on_stop(
 
 def save_checkpoint(
     plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer, metrics_file: Any, clock: Clock,
-    state: ppo.TrainState, update: int, metrics_bytes: int | None = None,
+    state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None,
 ) -> None:  # fmt: skip
-    """Checkpoints `state` after `update` with its record: metrics.jsonl's size (`metrics_bytes`,
-    default all of it: rows logged after it are cut at the resume) and checksum, the seconds so far
-    and what the run was trained with; its own seconds counted as checkpointing."""
+    """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
+    run's seconds and what it was trained with; its own seconds counted as checkpointing. The size
+    and seconds are those at the call unless given (a stop's checkpoint of an earlier chunk: the
+    rows logged after its size are cut at the resume)."""
     clock.lap("train_seconds")
     synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
     metrics_bytes = synced if metrics_bytes is None else metrics_bytes
     metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
     checkpointer.save(
         update, placement.checkpoint_state(state),
-        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **clock.seconds,
+        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **(seconds or clock.seconds),
          "trained_with": training_record(plan)},
     )  # fmt: skip
     clock.lap("checkpoint_seconds")

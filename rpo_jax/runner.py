@@ -374,7 +374,7 @@ def train_chunks(
                 if due.evolve:  # before the checkpoint holds it
                     scored = (metrics.episode_return, logged_returns["eval_return"])
                     state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
-                stop.logged = None if due.checkpoint else (state, updates_done, metrics_file.tell() if metrics_file else 0)
+                stop.hold(None if due.checkpoint else state, updates_done, metrics_file, clock)
                 if due.checkpoint:
                     save_checkpoint(plan, compiled.placement, checkpointer, metrics_file, clock, state, updates_done)
                     last_checkpoint = updates_done
