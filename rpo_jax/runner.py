@@ -370,11 +370,12 @@ def train_chunks(
                 if metrics_file:
                     write_rows(metrics_file, rows)
                 record_returns(rows, logged_returns)
-                track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
                 if due.evolve:  # before the checkpoint holds it
                     scored = (metrics.episode_return, logged_returns["eval_return"])
                     state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
+                # Before the tracking waits for the queued chunk, whose seconds a resume from here would count again.
                 stop.hold(None if due.checkpoint else state, updates_done, metrics_file, clock)
+                track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
                 if due.checkpoint:
                     save_checkpoint(plan, compiled.placement, checkpointer, metrics_file, clock, state, updates_done)
                     last_checkpoint = updates_done

@@ -627,24 +627,24 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
 
 
-def test_a_stop_checkpoints_the_last_logged_chunk_and_the_run_resumes_exactly(finished, tmp_path, capsys, monkeypatch):
-    """SIGTERM once the fifth chunk's rows are written, the next checkpoint due at update 10: the
-    stop checkpoints update 4, the last chunk before the one under way, and the resume cuts the
-    fifth chunk's rows, trains it again and ends as the uninterrupted run, bit for bit."""
-    track_chunk, chunks = runner.track_chunk, []
+@pytest.mark.parametrize("hook, held", [("record_returns", 4), ("track_chunk", 5)])
+def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch, hook, held):
+    """SIGTERM in the fifth chunk's host work, the next checkpoint due at update 10: once its rows
+    are written but before the chunk is held (`record_returns`), the stop checkpoints update 4 and
+    the resume cuts the fifth chunk's rows; while its tracking waits for the queued sixth
+    (`track_chunk`), update 5. Either way the resume ends as the uninterrupted run, bit for bit."""
+    original, out, stopped = getattr(runner, hook), tmp_path / "run", []
 
     def stopped_in_the_fifth(*args, **kwargs):
-        chunks.append(1)
-        if len(chunks) == 5:
-            os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode, before the chunk's tracking
-        return track_chunk(*args, **kwargs)
+        if not stopped and [row["update"] for row in RunDir(out).read_metrics()][-1:] == [5]:
+            stopped.append(os.kill(os.getpid(), signal.SIGTERM))  # handled at the next bytecode, before the original
+        return original(*args, **kwargs)
 
-    monkeypatch.setattr(runner, "track_chunk", stopped_in_the_fifth)
-    out = tmp_path / "run"
+    monkeypatch.setattr(runner, hook, stopped_in_the_fifth)
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS * 10)]) == 143
     assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
     checkpointer = Checkpointer(RunDir(out).checkpoints)
-    assert checkpointer.updates() == [4]
+    assert checkpointer.updates() == [held]
     checkpointer.close()
     assert [row["update"] for row in without_timing(out)][-1] == 5
     monkeypatch.undo()
