@@ -30,11 +30,17 @@ class Terminated(KeyboardInterrupt):
 
 
 class Interrupted(Exception):
-    """Ctrl-C or SIGTERM during training; carries the run directory to resume."""
+    """Ctrl-C or SIGTERM during training; carries the run directory to resume, and the update of
+    its latest checkpoint (None: none yet) of its `updates`, from which the resume goes on."""
 
-    def __init__(self, out: object, terminated: bool = False) -> None:
+    def __init__(self, out: object, terminated: bool = False, checkpoint: int | None = None, updates: int = 0) -> None:
         super().__init__(out)
-        self.terminated = terminated
+        self.terminated, self.checkpoint, self.updates = terminated, checkpoint, updates
+
+    def resumes(self) -> str:
+        if self.checkpoint is None:
+            return " (resumes from the start: no checkpoint yet)"
+        return f" (resumes from update {self.checkpoint:,} of {self.updates:,})"
 
 
 class WriteFailed(OSError):
@@ -48,10 +54,12 @@ class WriteFailed(OSError):
 
 
 def interrupt_failure(error: BaseException, after: str) -> int:
-    """Prints how the run stopped ("interrupted" by Ctrl-C, "terminated" by SIGTERM) followed by
-    `after` as one line; returns 128 + the signal's number, as a shell reports it: 130 or 143."""
+    """Prints how the run stopped ("interrupted" by Ctrl-C, "terminated" by SIGTERM), where a run
+    directory exists the update its resume goes on from, and `after`, as one line; returns 128 +
+    the signal's number, as a shell reports it: 130 or 143."""
     terminated = isinstance(error, Terminated) or getattr(error, "terminated", False)
-    print(f"{'terminated' if terminated else 'interrupted'}{after}", file=sys.stderr)
+    resumes = error.resumes() if isinstance(error, Interrupted) else ""
+    print(f"{'terminated' if terminated else 'interrupted'}{resumes}{after}", file=sys.stderr)
     return 128 + (signal.SIGTERM if terminated else signal.SIGINT)
 
 

@@ -74,10 +74,14 @@ class RunDir:
     def is_finished(self) -> bool:
         return (self.path / SUMMARY_FILE).is_file()
 
+    def latest_checkpoint(self) -> int | None:
+        """The update of the latest complete checkpoint (orbax names each by its update; a write
+        in progress has a temporary name), None where there is none."""
+        entries = self.checkpoints.iterdir() if self.checkpoints.is_dir() else ()
+        return max((int(entry.name) for entry in entries if entry.name.isdigit()), default=None)
+
     def has_checkpoint(self) -> bool:
-        """Whether a complete checkpoint exists (orbax names each by its update; a write in
-        progress has a temporary name)."""
-        return self.checkpoints.is_dir() and any(entry.name.isdigit() for entry in self.checkpoints.iterdir())
+        return self.latest_checkpoint() is not None
 
     def has_params(self) -> bool:
         return (self.path / PARAMS_FILE).is_file()

@@ -78,11 +78,12 @@ def use_compile_cache(directory: Path | None) -> None:
 
 
 @contextlib.contextmanager
-def _interruptible(out: Path) -> Iterator[None]:
+def _interruptible(plan: RunPlan) -> Iterator[None]:
     try:
         yield
     except KeyboardInterrupt as error:
-        raise Interrupted(out, isinstance(error, Terminated)) from None
+        checkpoint = plan.run_dir.latest_checkpoint()
+        raise Interrupted(plan.out, isinstance(error, Terminated), checkpoint, plan.config.num_updates) from None
 
 
 @dataclasses.dataclass
@@ -119,7 +120,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     if plan.capture_video:
         video.check_video(env, "--capture-video")
     if not is_primary():
-        with _interruptible(plan.out), _out_of_memory_refused():
+        with _interruptible(plan), _out_of_memory_refused():
             return train_locked(plan, env, grid, (), None)
     existed = plan.out.exists()
     with hold_lock(plan.out):
@@ -128,7 +129,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
         if plan.resuming and plan.run_dir.is_finished():
             raise UsageError(f"--resume {plan.out}: that run has already finished (summary.json exists)")
         try:
-            with _interruptible(plan.out), _out_of_memory_refused():
+            with _interruptible(plan), _out_of_memory_refused():
                 return train_locked(plan, env, grid, sinks, progress)
         except (Diverged, UsageError, OSError) as error:
             resumable = plan.resuming or plan.run_dir.has_checkpoint()

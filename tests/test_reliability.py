@@ -604,7 +604,8 @@ def test_ctrl_c_during_compilation_exits_130_with_the_resume_hint(tmp_path, caps
     monkeypatch.setattr(runner, "compile_runs", interrupted)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 130
-    assert one_line(capsys) == f"interrupted; continue with: python -m rpo_jax.train --resume {out}"
+    resumes = "(resumes from the start: no checkpoint yet)"
+    assert one_line(capsys) == f"interrupted {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     assert RunDir(out).has_config()
 
 
@@ -621,7 +622,8 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
     monkeypatch.setattr(runner, "compile_runs", terminated)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 143
-    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    resumes = "(resumes from the start: no checkpoint yet)"
+    assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     assert signal.getsignal(signal.SIGTERM) is before
     monkeypatch.setattr(runner, "compile_runs", compile_runs)
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
@@ -642,7 +644,8 @@ def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, 
 
     monkeypatch.setattr(runner, hook, stopped_in_the_fifth)
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS * 10)]) == 143
-    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    resumes = f"(resumes from update {held} of {UPDATES})"
+    assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     checkpointer = Checkpointer(RunDir(out).checkpoints)
     assert checkpointer.updates() == [held]
     checkpointer.close()

@@ -380,7 +380,8 @@ def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finishe
     monkeypatch.setattr(ocp.CheckpointManager, "save", terminated_while_saving)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 143
-    assert one_line(capsys) == f"terminated; continue with: python -m rpo_jax.train --resume {out}"
+    resumes = f"(resumes from update 3 of {UPDATES})"
+    assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     assert not (out / "checkpoints" / "4").exists()
     monkeypatch.undo()
     assert train.main(["--resume", str(out), "--quiet"]) == 0
