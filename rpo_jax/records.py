@@ -1,7 +1,7 @@
 """What the host makes of each chunk's numbers: metrics.jsonl's rows, the first non-finite
 quantity of a diverged run, summary.json's returns over the runs and their spread, the run's
 seconds by what they were spent on (`Clock`), and the checkpoints between chunks with their
-records, the one a stop leaves included (`checkpoint_on_stop`)."""
+records, the one a stop leaves included (`RunCheckpoints`)."""
 
 from __future__ import annotations
 
@@ -177,51 +177,59 @@ class Clock:
         self.last = now
 
 
-class StopCheckpoint:
-    """What a stop checkpoints (`checkpoint_on_stop`): the last chunk whose rows were logged, with
-    metrics.jsonl's size and the run's seconds then; None where a checkpoint holds it."""
+class RunCheckpoints:
+    """A run's checkpoints between chunks, each with its record: the scheduled ones (`save`) and,
+    on Ctrl-C or SIGTERM (`checkpoint_on_stop`), one of the last chunk whose rows were logged
+    (`hold`), so that a stop loses only the chunk under way rather than every update since the
+    last checkpoint. `checkpointer` None: checkpoints are off."""
 
-    def __init__(self) -> None:
-        self.logged: tuple[ppo.TrainState, int, int, dict[str, float]] | None = None
+    def __init__(
+        self, plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
+    ) -> None:  # fmt: skip
+        self.plan, self.placement, self.checkpointer, self.metrics_file, self.clock = (
+            plan, placement, checkpointer, metrics_file, clock,
+        )  # fmt: skip
+        self.logged: tuple[ppo.TrainState, int, int, dict[str, float]] | None = None  # what a stop would write
 
-    def hold(self, state: ppo.TrainState | None, update: int, metrics_file: Any, clock: Clock) -> None:
-        """After a chunk's rows are logged: `state` after `update`, or None where it is checkpointed."""
-        size = metrics_file.tell() if metrics_file else 0
-        self.logged = None if state is None else (state, update, size, dict(clock.seconds))
+    def hold(self, state: ppo.TrainState, update: int) -> None:
+        """After a chunk's rows are logged: `state` after `update`, with metrics.jsonl's size and the
+        run's seconds then (not the queued chunk's, which the resume trains again)."""
+        self.logged = (state, update, self.metrics_file.tell() if self.metrics_file else 0, dict(self.clock.seconds))
+
+    def save(self, state: ppo.TrainState, update: int) -> int:
+        """The scheduled checkpoint of `state` after `update`; returns `update`."""
+        self.logged = None  # a stop during the write writes nothing more
+        self.write(state, update)
+        return update
+
+    def write(
+        self, state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None
+    ) -> None:  # fmt: skip
+        """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
+        run's seconds and what it was trained with; its own seconds counted as checkpointing. The
+        size and seconds are those at the call unless given (a stop's checkpoint of an earlier
+        chunk: the rows logged after its size are cut at the resume)."""
+        clock, metrics_file = self.clock, self.metrics_file
+        clock.lap("train_seconds")
+        synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+        metrics_bytes = synced if metrics_bytes is None else metrics_bytes
+        metrics_sha256 = self.plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
+        self.checkpointer.save(
+            update, self.placement.checkpoint_state(state),
+            {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
+             **(seconds or clock.seconds), "trained_with": training_record(self.plan)},
+        )  # fmt: skip
+        clock.lap("checkpoint_seconds")
 
 
 @contextlib.contextmanager
-def checkpoint_on_stop(
-    plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
-) -> Iterator[StopCheckpoint]:  # fmt: skip
-    """On Ctrl-C or SIGTERM in the block, checkpoints the chunk the `StopCheckpoint` holds before
-    the stop goes on, so that it loses only the chunk under way rather than every update since the
-    last checkpoint. One process only: several would all have to take part in the write."""
-    stop = StopCheckpoint()
+def checkpoint_on_stop(checkpoints: RunCheckpoints) -> Iterator[RunCheckpoints]:
+    """On Ctrl-C or SIGTERM in the block, writes the chunk `checkpoints` holds before the stop goes
+    on. One process only: several would all have to take part in the write."""
     try:
-        yield stop
+        yield checkpoints
     except KeyboardInterrupt:
-        if checkpointer and stop.logged and jax.process_count() == 1:
+        if checkpoints.checkpointer and checkpoints.logged and jax.process_count() == 1:
             with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
-                save_checkpoint(plan, placement, checkpointer, metrics_file, clock, *stop.logged)
+                checkpoints.write(*checkpoints.logged)
         raise
-
-
-def save_checkpoint(
-    plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer, metrics_file: Any, clock: Clock,
-    state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None,
-) -> None:  # fmt: skip
-    """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
-    run's seconds and what it was trained with; its own seconds counted as checkpointing. The size
-    and seconds are those at the call unless given (a stop's checkpoint of an earlier chunk: the
-    rows logged after its size are cut at the resume)."""
-    clock.lap("train_seconds")
-    synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
-    metrics_bytes = synced if metrics_bytes is None else metrics_bytes
-    metrics_sha256 = plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
-    checkpointer.save(
-        update, placement.checkpoint_state(state),
-        {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256, **(seconds or clock.seconds),
-         "trained_with": training_record(plan)},
-    )  # fmt: skip
-    clock.lap("checkpoint_seconds")

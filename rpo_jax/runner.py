@@ -35,8 +35,8 @@ from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteF
 from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label
 from rpo_jax.policy import params_bytes
 from rpo_jax.records import (
-    Clock, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows, progress_metrics, record_returns,
-    save_checkpoint, summarise,
+    Clock, RunCheckpoints, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows, progress_metrics,
+    record_returns, summarise,
 )  # fmt: skip
 from rpo_jax.rundir import RunDir, hold_lock, write_rows
 
@@ -349,7 +349,7 @@ def train_chunks(
     # Only process 0 logs (None: another process); every process computes the same rows.
     with (
         plan.run_dir.append_metrics() if is_primary() else contextlib.nullcontext() as metrics_file,
-        checkpoint_on_stop(plan, compiled.placement, checkpointer, metrics_file, clock) as stop,
+        checkpoint_on_stop(RunCheckpoints(plan, compiled.placement, checkpointer, metrics_file, clock)) as checkpoints,
     ):
         pending = compiled.run_chunk(state) if record["update"] < config.num_updates else None
         try:
@@ -375,11 +375,10 @@ def train_chunks(
                     scored = (metrics.episode_return, logged_returns["eval_return"])
                     state = population.evolve(plan, compiled.placement, compiled.evolve, state, *scored, runs, updates_done)
                 # Before the tracking waits for the queued chunk, whose seconds a resume from here would count again.
-                stop.hold(None if due.checkpoint else state, updates_done, metrics_file, clock)
+                checkpoints.hold(state, updates_done)
                 track_chunk(clock, sinks, rows, progress, steps_done, progress_metrics(metrics, sps, eval_returns), pending)
                 if due.checkpoint:
-                    save_checkpoint(plan, compiled.placement, checkpointer, metrics_file, clock, state, updates_done)
-                    last_checkpoint = updates_done
+                    last_checkpoint = checkpoints.save(state, updates_done)
                 if pending is None and updates_done < config.num_updates:
                     pending = compiled.run_chunk(state)
         finally:

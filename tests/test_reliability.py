@@ -629,16 +629,17 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
 
 
-@pytest.mark.parametrize("hook, held", [("record_returns", 4), ("track_chunk", 5)])
-def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch, hook, held):
+@pytest.mark.parametrize("hook, at, held", [("record_returns", 5, 4), ("track_chunk", 5, 5), ("track_chunk", 10, 10)])
+def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch, hook, at, held):
     """SIGTERM in the fifth chunk's host work, the next checkpoint due at update 10: once its rows
     are written but before the chunk is held (`record_returns`), the stop checkpoints update 4 and
     the resume cuts the fifth chunk's rows; while its tracking waits for the queued sixth
-    (`track_chunk`), update 5. Either way the resume ends as the uninterrupted run, bit for bit."""
+    (`track_chunk`), update 5; likewise in the tenth, whose scheduled checkpoint was still to be
+    written, update 10. Each time the resume ends as the uninterrupted run, bit for bit."""
     original, out, stopped = getattr(runner, hook), tmp_path / "run", []
 
     def stopped_in_the_fifth(*args, **kwargs):
-        if not stopped and [row["update"] for row in RunDir(out).read_metrics()][-1:] == [5]:
+        if not stopped and [row["update"] for row in RunDir(out).read_metrics()][-1:] == [at]:
             stopped.append(os.kill(os.getpid(), signal.SIGTERM))  # handled at the next bytecode, before the original
         return original(*args, **kwargs)
 
@@ -649,7 +650,7 @@ def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, 
     checkpointer = Checkpointer(RunDir(out).checkpoints)
     assert checkpointer.updates() == [held]
     checkpointer.close()
-    assert [row["update"] for row in without_timing(out)][-1] == 5
+    assert [row["update"] for row in without_timing(out)][-1] == at
     monkeypatch.undo()
     assert train.main(["--resume", str(out), "--quiet"]) == 0
     assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()

@@ -231,7 +231,7 @@ def test_a_finished_run_edited_in_what_acting_does_not_read_acts_as_before(finis
 def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out(tmp_path, monkeypatch):
     # Evaluations and checkpoints' writes made slow (2 s and 1 s each) against a training of 20
     # tiny updates that takes well under a second: counted in train_seconds, they would dominate it.
-    # The write itself is slowed, inside the laps that `runner.save_checkpoint` times it by.
+    # The write itself is slowed, inside the laps that `records.RunCheckpoints.write` times it by.
     def slow(owner, name, seconds):
         function = getattr(owner, name)
 
