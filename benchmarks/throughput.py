@@ -6,8 +6,9 @@ env_sps: a jitted lax.scan of vmapped auto-resetting steps with uniform random a
 after a warm-up call, from a state reset beforehand (for a host-side environment, the scan of
 its callback steps). raw_sps (host-side environments only): the same steps on the host
 simulators called directly from Python with numpy actions, no JAX involved; with --seeds K,
-seeds_raw_sps is K such pools stepped side by side, against which K seeds' training is set where
-the simulators are the cost. train_sps: the full
+seeds_raw_sps is K such pools stepped side by side (with --shared-pools, one pool of K x
+--num-envs, as the seeds then step), against which K seeds' training is set where the
+simulators are the cost. train_sps: the full
 PPO/RPO update (rollout, GAE, epochs of minibatch SGD) with --preset (default `isaacgym`) at
 --num-envs, timed after compilation. compile_seconds: the ahead-of-time compilation of that
 training program.
@@ -89,14 +90,16 @@ def raw_host_steps_per_second(
 
 
 def train_steps_per_second(
-    name: str, preset: str, num_envs: int, num_steps: int | None, num_updates: int, repeats: int, num_seeds: int = 1
-) -> tuple[float, float]:
+    name: str, preset: str, num_envs: int, num_steps: int | None, num_updates: int, repeats: int, num_seeds: int = 1,
+    shared_pools: bool = False,
+) -> tuple[float, float]:  # fmt: skip
     """Training steps/s summed over `num_seeds` seeds trained in one program (`devices.map_runs`:
     vmapped, and one seed unbatched, as `train --num-seeds` does), and the program's compile time."""
     config = dataclasses.replace(PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, num_steps=num_steps or config.num_steps)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
-    trainer = ppo.make_trainer(config, envs.make_env(name))
+    env = envs.make_env(name)
+    trainer = ppo.make_trainer(config, env.sharing_pools() if shared_pools else env)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
     state = jax.jit(devices.map_runs(trainer.init))(keys)
     start = time.perf_counter()
@@ -119,6 +122,9 @@ def main() -> int:
         "--seeds", type=int, default=1,
         help="also time this many seeds trained in one program; seeds_wall_ratio is its wall time over one seed's",
     )  # fmt: skip
+    parser.add_argument(
+        "--shared-pools", action="store_true", help="the seeds share one pool of host simulators, as with train --shared-pools"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args()
@@ -134,12 +140,11 @@ def main() -> int:
     env_sps = env_steps_per_second(args.env, args.num_envs, args.env_steps, args.repeats)
     training = (args.env, args.preset, args.num_envs, args.num_steps, args.train_updates, args.repeats)
     train_sps, compile_seconds = train_steps_per_second(*training)
-    seeds_sps = train_steps_per_second(*training, args.seeds)[0] if args.seeds > 1 else None
-    # Where the simulators are the cost, K seeds' training against their K pools stepped alone.
+    seeds_sps = train_steps_per_second(*training, args.seeds, args.shared_pools)[0] if args.seeds > 1 else None
+    # Where the simulators are the cost, K seeds' training against the simulators they step, alone.
+    pools, pool_envs = (1, args.seeds * args.num_envs) if args.shared_pools else (args.seeds, args.num_envs)
     seeds_raw_sps, seeds_raw_cores = (
-        raw_host_steps_per_second(env, args.num_envs, args.env_steps, args.repeats, args.seeds)
-        if seeds_sps and raw_sps
-        else (None, None)
+        raw_host_steps_per_second(env, pool_envs, args.env_steps, args.repeats, pools) if seeds_sps and raw_sps else (None, None)
     )
     device = jax.devices()[0]
     result = {
@@ -155,6 +160,7 @@ def main() -> int:
         "train_to_raw_ratio": train_sps / raw_sps if raw_sps else None,
         "compile_seconds": compile_seconds,
         "seeds": args.seeds,
+        "shared_pools": args.shared_pools,
         "seeds_train_sps": seeds_sps,
         # The same steps per seed: K seeds' wall time over one seed's is K * (1-seed sps / K-seed sps).
         "seeds_wall_ratio": args.seeds * train_sps / seeds_sps if seeds_sps else None,
@@ -187,8 +193,10 @@ def report(result: dict) -> None:
     if sps:
         print(f"{seeds} seeds in one program: {sps:,.0f} steps/s, wall time {result['seeds_wall_ratio']:.2f}x one seed's")
     if result["seeds_raw_sps"]:
+        apart = f"their {seeds} pools stepped alone, side by side"
+        simulators = "their one shared pool stepped alone" if result["shared_pools"] else apart
         print(
-            f"their {seeds} pools stepped alone, side by side: {result['seeds_raw_sps']:,.0f} steps/s on "
+            f"{simulators}: {result['seeds_raw_sps']:,.0f} steps/s on "
             f"{result['seeds_raw_cores']:.2f} cores; the {seeds} seeds train at {result['seeds_train_to_raw_ratio']:.2f}x it"
         )
 

@@ -30,7 +30,9 @@ Host-side environments (simulators stepped through callbacks) are placed the sam
 run steps its own pool of simulators, and with `--shard-envs` every device steps a pool of
 num_envs / D simulators per run, built from the key folded with its index. A device's
 callbacks run in the process that owns it, so with several processes each builds and steps
-the pools of its own devices' shares (a pool's handle means something only there).
+the pools of its own devices' shares (a pool's handle means something only there). With
+`--shared-pools` the runs of one device's program (of one group's, with `--split-epochs`) share
+one pool instead; the groups' runs are then also started apart, group by group.
 
 Several processes (`peers.join_processes`, one per machine or per GPU) train as one: the mesh holds
 every process's devices, each process runs the same program, and the results come back to
@@ -67,6 +69,7 @@ class Placement:
     num_runs: int
     processes: int = 1  # the processes whose devices make up the mesh
     epochs_mesh: Mesh | None = None
+    shared_pools: bool = False  # the runs stepped together share one pool of host simulators (`envs.HostEnv.sharing_pools`)
 
     @property
     def _devices(self) -> Mesh | None:
@@ -98,6 +101,8 @@ class Placement:
 
     def make_trainer(self, config: Config, env: envs.Env) -> ppo.Trainer:
         """The trainer of one device's share of the runs; `config` is a plan's, validated already."""
+        if self.shared_pools:  # on an envs.HostEnv: the plan refused the flag for any other
+            env = env.sharing_pools()
         if self.kind == "envs":
             return ppo.build_trainer(config, env, axis_name=AXIS, env_shards=self.count)
         return ppo.build_trainer(config, env)
@@ -113,6 +118,8 @@ class Placement:
     def init_program(self, trainer: ppo.Trainer) -> Callable[[jax.Array, ppo.Hyperparams], ppo.TrainState]:
         """(keys [R], hparams [R]) -> the placed initial state of every run."""
         init = map_runs(trainer.init)
+        if self.kind == "epochs" and self.shared_pools:
+            return jax.jit(self._by_group(init))
         if self.mesh is None:
             return jax.jit(init)
         if self.kind == "envs":
@@ -196,7 +203,22 @@ class Placement:
         """Placed state -> the same with fresh episodes in every run (`Trainer.restart_episodes`),
         each device restarting its own share, so that host-side simulators get a new pool per
         device shard, seeded from that shard's key."""
-        return self._per_device(map_runs(trainer.restart_episodes))
+        restart = map_runs(trainer.restart_episodes)
+        if self.kind == "epochs" and self.shared_pools:
+            return jax.jit(self._by_group(restart))
+        return self._per_device(restart)
+
+    def _by_group(self, runs_fn: Callable) -> Callable:
+        """`runs_fn` (on a batch of runs) on each of the epochs placement's groups apart, joined: the
+        runs that step together start together, so that the pool they share is built for them."""
+        first = run_groups(self.num_runs)[0]
+
+        def grouped(*args: Any) -> Any:
+            head = runs_fn(*jax.tree.map(lambda leaf: leaf[:first], args))
+            tail = runs_fn(*jax.tree.map(lambda leaf: leaf[first:], args))
+            return jax.tree.map(lambda *leaves: jax.numpy.concatenate(leaves), head, tail)
+
+        return grouped
 
     def _per_device(self, runs_fn: Callable) -> Callable:
         """`runs_fn` (on a batch of runs' states) jitted for this placement."""
@@ -284,7 +306,8 @@ def pad_runs(tree: Any, runs: int) -> Any:
 
 
 def make_placement(
-    devices: int | None, shard_envs: bool, num_runs: int, config: Config, split_epochs: bool = False
+    devices: int | None, shard_envs: bool, num_runs: int, config: Config, split_epochs: bool = False,
+    shared_pools: bool = False,
 ) -> Placement:  # fmt: skip
     """The placement of `num_runs` runs on `devices` local devices of every process (None: all of
     them), checked: bad layouts raise UsageError naming what is allowed."""
@@ -306,11 +329,11 @@ def make_placement(
         # Split epochs: the first device and one per run of the larger group; more would hold only copies.
         count = min(count, num_runs if not split_epochs else run_groups(num_runs)[0] + 1)
     if count == 1 and processes == 1:
-        return Placement(None, False, num_runs)
+        return Placement(None, False, num_runs, shared_pools=shared_pools)
     chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]
     if split_epochs:
-        return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen[1:]), (AXIS,)))
-    return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes)
+        return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen[1:]), (AXIS,)), shared_pools=shared_pools)
+    return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes, shared_pools=shared_pools)
 
 
 def split_cpu(count: int | None) -> None:

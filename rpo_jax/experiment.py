@@ -34,7 +34,8 @@ from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.files import write_json
 from rpo_jax.rundir import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
 from rpo_jax.spec import (
-    JOINING_FIELDS, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse, refuse_old_flags,
+    JOINING_FIELDS, PLACEMENT_FIELDS, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse,
+    refuse_old_flags,
 )  # fmt: skip
 
 PROG = "python -m rpo_jax.experiment"
@@ -169,8 +170,8 @@ NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
 OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
 # experiments recorded before they could be given continue.
-RECORDED_WHERE_GIVEN = ("seed", "log_every", "devices", "shard_envs", "split_epochs", "capture_video",
-                        "capture_video_every", "capture_video_episodes")  # fmt: skip
+RECORDED_WHERE_GIVEN = ("seed", "log_every", *PLACEMENT_FIELDS, "capture_video", "capture_video_every",
+                        "capture_video_episodes")  # fmt: skip
 
 
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:
@@ -339,7 +340,7 @@ def job_plan(
     from rpo_jax import plan
 
     preset, config = job_config(definition, env, job)
-    processes = Processes(**{name: definition[name] for name in ("devices", "shard_envs", "split_epochs") if name in definition})
+    processes = Processes(**{name: definition[name] for name in PLACEMENT_FIELDS if name in definition})
     population = Pbt(pbt=True, population=job.population, pbt_fields=job.pbt_fields) if job.population else None
     return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset, grid, population)
 

@@ -26,7 +26,7 @@ from rpo_jax.devices import Placement, is_primary, make_placement
 from rpo_jax.envs import registry
 from rpo_jax.errors import UsageError
 from rpo_jax.rundir import RunDir
-from rpo_jax.spec import EXPLORE_RULES, Pbt, Processes, RunSpec, check_seeds
+from rpo_jax.spec import EXPLORE_RULES, PLACEMENT_FIELDS, Pbt, Processes, RunSpec, check_seeds
 
 # Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
 # steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
@@ -40,13 +40,13 @@ VIDEOS_PER_RUN = 4
 # evaluation during training existed lack the eval fields and read back with evaluation off.
 PLAN_FIELDS = (
     "env", "preset", "seed", "num_seeds", "sweep", "log_every", "checkpoint_every", "eval_every", "eval_episodes",
-    "devices", "shard_envs", "split_epochs", "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
+    *PLACEMENT_FIELDS, "capture_video", "capture_video_every", "capture_video_episodes", "pbt",
 )  # fmt: skip
 # The types of the plan's fields as config.json holds them (JSON's: the sweep is a list).
 PLAN_TYPES: dict[str, tuple[type, ...]] = {
     "env": (str,), "preset": (str, type(None)), "seed": (int,), "num_seeds": (int,), "sweep": (list,),
     "log_every": (int,), "checkpoint_every": (int,), "eval_every": (int,), "eval_episodes": (int,),
-    "devices": (int, type(None)), "shard_envs": (bool,), "split_epochs": (bool,),
+    "devices": (int, type(None)), "shard_envs": (bool,), "split_epochs": (bool,), "shared_pools": (bool,),
     "capture_video": (bool,), "capture_video_every": (int, type(None)), "capture_video_episodes": (int,),
     "pbt": (dict, type(None)),
 }  # fmt: skip
@@ -73,6 +73,7 @@ class RunPlan:
     devices: int | None = Processes.devices  # local devices to train on (see rpo_jax.devices); None: all
     shard_envs: bool = Processes.shard_envs  # split each run's environments over the devices instead of the runs
     split_epochs: bool = Processes.split_epochs  # split only the runs' epochs over the devices (rpo_jax.devices)
+    shared_pools: bool = Processes.shared_pools  # the runs stepped together share one pool of host simulators
     capture_video: bool = RunSpec.capture_video  # videos of the deterministic policy during training (rpo_jax.video)
     capture_video_every: int | None = RunSpec.capture_video_every  # env steps per run between videos; None: VIDEOS_PER_RUN
     capture_video_episodes: int = RunSpec.capture_video_episodes
@@ -147,6 +148,7 @@ def new_plan(
     populations of that many seeds each."""
     processes = processes or Processes()
     grid = check_new(env, config, run) if grid is None else grid  # the config checked before its sizes are used
+    check_shared_pools(env, processes.shared_pools)
     run_steps = config.num_updates * config.batch_size
     evolution = pbt_record(population, run, run_steps)
     if evolution:
@@ -164,10 +166,12 @@ def new_plan(
         eval_every=run.eval_every, eval_episodes=run.eval_episodes, devices=processes.devices,
         capture_video=run.capture_video, capture_video_every=run.capture_video_every,
         capture_video_episodes=run.capture_video_episodes,
-        shard_envs=processes.shard_envs, split_epochs=processes.split_epochs, pbt=evolution, grid=tuple(grid),
+        shard_envs=processes.shard_envs, split_epochs=processes.split_epochs, shared_pools=processes.shared_pools,
+        pbt=evolution, grid=tuple(grid),
         # A bad layout is refused here, before anything is written.
         placement=make_placement(
-            processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config, processes.split_epochs
+            processes.devices, processes.shard_envs, len(grid) * run.num_seeds, config, processes.split_epochs,
+            processes.shared_pools,
         ),
     )  # fmt: skip
 
@@ -283,7 +287,9 @@ def resumed_plan(out: Path) -> RunPlan:
             check_pbt(plan["pbt"], config, plan["num_seeds"])
     except UsageError as error:
         raise UsageError(f"--resume {out}: config.json's plan is not one the flags allow: {error}") from None
-    placement = make_placement(plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config, plan["split_epochs"])
+    placement = make_placement(
+        plan["devices"], plan["shard_envs"], len(grid) * plan["num_seeds"], config, plan["split_epochs"], plan["shared_pools"]
+    )
     resumed = RunPlan(
         out=out, config=config, resuming=True, grid=tuple(grid), placement=placement,
         **{name: tuple(value) if name == "sweep" else value for name, value in plan.items()},
@@ -307,7 +313,17 @@ def check_saved_plan(plan: dict[str, Any], config: Config) -> list[dict[str, flo
     if not all(isinstance(spec, str) for spec in plan["sweep"]):
         raise UsageError(f"sweep must be a list of NAME=V1,V2 strings, got {plan['sweep']!r}")
     run = RunSpec(**{field.name: plan[field.name] for field in dataclasses.fields(RunSpec) if field.name != "out"})
-    return check_run(plan["env"], config, run)
+    grid = check_run(plan["env"], config, run)
+    check_shared_pools(plan["env"], plan["shared_pools"])
+    return grid
+
+
+def check_shared_pools(env: str, shared_pools: bool) -> None:
+    """Refuses --shared-pools for an environment without pools of host simulators (`envs.HostEnv`)
+    to share: one that steps in JAX, or a user's own host-side batch."""
+    if shared_pools and not isinstance(envs.make_env(env), envs.HostEnv):
+        suites = "gym/, gymnasium/, pybullet/, dmc/"
+        raise UsageError(f"--shared-pools shares the simulator pools of host-side tasks ({suites}); {env} has none")
 
 
 def plan_record(plan: RunPlan) -> dict[str, Any]:

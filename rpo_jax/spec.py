@@ -121,6 +121,9 @@ class Processes(CompileCache):
     split_epochs: bool = False
     """step the runs' environments on the first device and run their minibatch epochs on the others, the runs in two groups that
     take turns so that one's epochs overlap the other's rollout: for host-side environments (Gym, DMC) on --cpu-devices"""
+    shared_pools: bool = False
+    """host-side tasks: the runs stepped together (a device's, or a group's with --split-epochs) share one pool of simulators,
+    faster on a CPU of few cores; a run's episodes then follow from its group (its first seed, its place), not its seed alone"""
     cpu_devices: int | None = None
     """make the CPU this many devices, so that runs split over them train side by side on its cores (several seeds or
     sweep points train faster on a CPU of several cores); None: JAX's default (one)"""
@@ -163,6 +166,8 @@ class TrainedRun:
         return RunDir(self.run_dir).default_run() if self.run is None else self.run
 
 
+# The flags that choose where and how the runs of one command train; config.json records them.
+PLACEMENT_FIELDS = ("devices", "shard_envs", "split_epochs", "shared_pools")
 # The flags that make several processes train together.
 JOINING_FIELDS = ("coordinator", "num_processes", "process_id", "coordinator_timeout", "distributed")
 

@@ -176,6 +176,35 @@ def test_host_side_runs_split_over_devices_train_as_on_one_device(tmp_path):
     assert [(summary["placement"], summary["devices"]) for summary in summaries.values()] == [("runs", 2), ("epochs", 3)]
 
 
+def test_host_side_runs_sharing_pools_with_split_epochs_train_as_their_groups_on_one_device(tmp_path):
+    # --shared-pools with --split-epochs: 4 runs (seeds 1-4) in two groups of 2, each group started
+    # together and stepping one pool seeded from its first run's key, train as the same two seeds
+    # on one device with shared pools. Seed 2 trained with a pool of its own ends elsewhere:
+    # sharing changes a run's episodes, as documented.
+    shared = ["--shared-pools", "--devices"]
+    layouts = {
+        "epochs": ["--num-seeds", "4", *shared, "3", "--split-epochs"],
+        "first": ["--num-seeds", "2", *shared, "1"],
+        "second": ["--seed", "3", "--num-seeds", "2", *shared, "1"],
+        "alone": ["--seed", "2", "--devices", "1"],
+    }
+    commands = (json.dumps([*HOST, *flags, name]) for name, flags in layouts.items())
+    results = device_check(tmp_path, "commands", *commands)
+    assert all(result["code"] == 0 for result in results.values()), results
+    epochs, first, second = (params_of(tmp_path / name) for name in ("epochs", "first", "second"))
+    for whole, head, tail in zip(epochs, first, second, strict=True):
+        np.testing.assert_allclose(whole, np.concatenate([head, tail]), rtol=1e-4, atol=2e-5)
+    alone = params_of(tmp_path / "alone")
+    assert not all(np.allclose(own, shared_run[1], rtol=1e-3) for own, shared_run in zip(alone, first, strict=True))
+
+
+def test_host_side_runs_sharing_pools_resume_with_split_epochs(tmp_path):
+    # The resumed runs restart their episodes group by group, as their pools are shared.
+    flags = ["--num-seeds", "3", "--devices", "2", "--split-epochs", "--shared-pools"]
+    result = device_check(tmp_path, "resume", *HOST, *flags)
+    assert result["codes"] == [0, 0] and result["rows"] == 3 * 4
+
+
 @pytest.mark.slow  # 17 s; host-side runs split stay in the test above
 def test_host_side_environments_split_over_devices_train_and_resume(tmp_path):
     # Each device steps a pool of its own (4 of the 8 simulators of each run); a resumed run
@@ -202,6 +231,7 @@ BAD_LAYOUTS = {
     "minibatch": (["--num-envs", "4", "--num-steps", "3", "--shard-envs"], "needs the minibatch"),
     "epochs-envs": (["--split-epochs", "--shard-envs"], "--split-epochs splits the runs' epochs, --shard-envs each run's"),
     "epochs-one-run": (["--split-epochs"], "--split-epochs needs 2 or more runs (--num-seeds, --sweep) to take turns"),
+    "shared-pools-in-jax": (["--shared-pools"], "--shared-pools shares the simulator pools of host-side tasks (gym/"),
 }
 
 

@@ -302,8 +302,8 @@ def test_a_config_json_without_a_plan_field_reads_the_flags_default():
         name: flags.get(name) for name in plan_module.PLAN_FIELDS if name in plan_module.PLAN_DEFAULTS
     }  # fmt: skip
     assert set(plan_module.PLAN_DEFAULTS) == {
-        "eval_every", "eval_episodes", "devices", "shard_envs", "split_epochs", "capture_video", "capture_video_every",
-        "capture_video_episodes", "pbt",
+        "eval_every", "eval_episodes", "devices", "shard_envs", "split_epochs", "shared_pools", "capture_video",
+        "capture_video_every", "capture_video_episodes", "pbt",
     }  # fmt: skip
 
 

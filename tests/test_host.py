@@ -18,7 +18,7 @@ from flax import serialization
 from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.envs import MissingExtraError
-from rpo_jax.envs.host import HostEnv, SequentialSimulators
+from rpo_jax.envs.host import BatchedHostEnv, HostEnv, PoolShare, SequentialSimulators
 
 EPISODE = 5
 SPEC = envs.EnvSpec("host_point_mass", 2, 1, (-1.0,), (1.0,), EPISODE, "host")
@@ -325,3 +325,50 @@ def test_a_program_still_stepping_closed_pools_gets_zeros_not_an_error():
     env.close()
     _, ts = step(state, jnp.ones((2, 1)))
     assert not np.asarray(ts.obs).any() and not np.asarray(ts.reward).any()
+
+
+def test_runs_sharing_pools_step_one_pool_of_all_their_simulators():
+    # Three runs of 2 simulators: one pool of 6, seeded from the first run's key, run r stepping
+    # simulators 2r and 2r + 1 with its own actions; one pool built, and closed once.
+    built, closed = [], []
+
+    def counted(num_envs, seed):
+        pool = host_point_mass().make_simulators(num_envs, seed)
+        pool.close = lambda: closed.append(pool)
+        built.append((num_envs, seed))
+        return pool
+
+    env = envs.vectorize(HostEnv(SPEC, counted).sharing_pools(), 2)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (0, 1, 2)])
+    actions = jnp.linspace(-1, 1, 3 * 2 * EPISODE * 2).reshape(3, 2 * EPISODE, 2, 1)
+
+    @jax.jit
+    @jax.vmap
+    def runs(key, actions):
+        state, first = env.reset(key)
+        return first, jax.lax.scan(env.step, state, actions)[1]
+
+    first, together = runs(keys, actions)
+    seed = int(jax.random.randint(keys[0], (), 0, 2**30, dtype=jnp.int32))
+    assert built == [(6, seed)]
+    whole = host_point_mass().make_simulators(6, seed)
+    np.testing.assert_array_equal(first.obs.reshape(6, 2), whole.reset().astype(np.float32))
+    got = (together.obs, together.reward, together.terminated, together.truncated, together.final_obs)
+    for t in range(2 * EPISODE):  # an episode's end and the next's start among them
+        expected = whole.step(np.asarray(actions[:, t]).reshape(6, 1))
+        for x, y in zip(expected, got, strict=True):
+            np.testing.assert_array_equal(np.asarray(y[:, t]).reshape(x.shape), x.astype(y.dtype))
+    # The first run's simulators are seeded as its own pool would be: its episodes are those alone.
+    alone = rollout(envs.vectorize(host_point_mass(), 2), keys[0], actions[0])[1]
+    np.testing.assert_array_equal(alone.obs, together.obs[0])
+    env.close()
+    assert len(closed) == 1
+
+
+def test_runs_sharing_a_pool_are_stepped_together_or_not_at_all():
+    pool = host_point_mass().make_simulators(4, 0)
+    shares = [PoolShare(pool, place, 2) for place in range(2)]
+    assert BatchedHostEnv._shared_pool(shares) is pool
+    for apart in (shares[::-1], shares[:1], [shares[0], PoolShare(host_point_mass().make_simulators(4, 0), 1, 2)]):
+        with pytest.raises(RuntimeError, match="stepped apart from their group"):
+            BatchedHostEnv._shared_pool(apart)

@@ -11,6 +11,14 @@ step of all runs is one callback: pools that can start a step and collect it lat
 `send`/`recv`) are all started before any is collected, so their threads run at the same time
 and the callback's overhead is paid once per step rather than once per run.
 
+With shared pools (`HostEnv.sharing_pools`, the command line's `--shared-pools`) the runs that a
+vmapped program steps together share one pool instead: one pool of runs x `num_envs`
+simulators seeded from the first run's key, in which run r steps simulators r x `num_envs`
+onwards. On a CPU of few cores one pool hands work to its threads and back once a step where
+several pools would each do it (benchmarks/RESULTS.md, "The runs of a group in one pool"). A
+run's episodes then follow from its group's first key and its place in the group, not from its
+own key: the same command on the same placement gives the same episodes, a seed alone does not.
+
 When JAX computes on the CPU the callbacks are `jax.experimental.buffer_callback`s, which hand
 the host function XLA's own buffers: the inputs are read and the outputs written in place.
 `io_callback`, used on other devices because it copies the arrays to the host, also copies
@@ -30,6 +38,7 @@ as truncations.
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import itertools
 import threading
 from typing import Callable, Protocol
@@ -129,7 +138,16 @@ DrawnSimulatorFactory = Callable[[int, int, int], DrawnSimulator]
 
 @struct.dataclass
 class HostState:
-    handle: jax.Array  # [] int32: the pool of simulators this run steps
+    handle: jax.Array  # [] int32: the pool of simulators this run steps, or its share of one
+
+
+@dataclasses.dataclass(frozen=True)
+class PoolShare:
+    """A run's share of a pool that the `runs` runs of its group step together."""
+
+    pool: HostSimulators  # runs x num_envs simulators
+    place: int  # this run steps simulators place x num_envs onwards
+    runs: int
 
 
 class HostEnv:
@@ -139,11 +157,22 @@ class HostEnv:
     batched environment that the trainer steps (`envs.vectorize` does it for any env).
     `make_drawn`, where the suite can draw, builds one simulator that renders for videos."""
 
-    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, make_drawn: DrawnSimulatorFactory | None = None) -> None:
+    def __init__(
+        self,
+        spec: EnvSpec,
+        make_simulators: SimulatorFactory,
+        make_drawn: DrawnSimulatorFactory | None = None,
+        shared_pools: bool = False,
+    ) -> None:
         self.spec, self.make_simulators, self.make_drawn = spec, make_simulators, make_drawn
+        self.shared_pools = shared_pools
+
+    def sharing_pools(self) -> "HostEnv":
+        """This environment with the runs stepped together sharing one pool (the module's docstring)."""
+        return HostEnv(self.spec, self.make_simulators, self.make_drawn, shared_pools=True)
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
-        return BatchedHostEnv(self.spec, self.make_simulators, num_envs)
+        return BatchedHostEnv(self.spec, self.make_simulators, num_envs, self.shared_pools)
 
 
 class BatchedHostEnv:
@@ -152,9 +181,10 @@ class BatchedHostEnv:
     `in_place` (default: whether JAX computes on the CPU) chooses buffer callbacks, which need
     XLA's buffers in host memory, over `io_callback`, which copies them there from any device."""
 
-    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int) -> None:
+    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int, shared_pools: bool = False) -> None:
         self.spec, self.make_simulators, self.num_envs = spec, make_simulators, num_envs
-        self.pools: dict[int, HostSimulators] = {}
+        self.shared_pools = shared_pools
+        self.pools: dict[int, HostSimulators | PoolShare] = {}
         self.closed: set[int] = set()
         self.handles = itertools.count()
         self.in_place = jax.default_backend() == "cpu"
@@ -165,10 +195,21 @@ class BatchedHostEnv:
         self.step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
 
     def _host_reset(self, out: tuple[np.ndarray, ...], seed: np.ndarray) -> None:
-        handle = next(self.handles)
-        pool = self.make_simulators(self.num_envs, int(seed))
-        self.pools[handle] = pool
-        out[0][...], out[1][...] = handle, pool.reset()
+        """seed [*runs] -> `out` (handle [*runs], obs [*runs, N, obs]): a pool of its own for each
+        run (called once per run under `jax.vmap`), or one shared by all the runs of the call."""
+        if not self.shared_pools or seed.ndim == 0:
+            handle = next(self.handles)
+            pool = self.make_simulators(self.num_envs, int(seed))
+            self.pools[handle] = pool
+            out[0][...], out[1][...] = handle, pool.reset()
+            return
+        runs = seed.size
+        pool = self.make_simulators(runs * self.num_envs, int(seed.reshape(-1)[0]))
+        obs = pool.reset().reshape(runs, self.num_envs, -1)
+        for place, run in enumerate(np.ndindex(*seed.shape)):  # seed.reshape(-1)'s order
+            handle = next(self.handles)
+            self.pools[handle] = PoolShare(pool, place, runs)
+            out[0][run], out[1][run] = handle, obs[place]
 
     def _host_step(self, out: tuple[np.ndarray, ...], handle: np.ndarray, action: np.ndarray) -> None:
         """handle [*runs] and action [*runs, N, act] -> `out` (obs, reward, terminated, truncated,
@@ -186,6 +227,11 @@ class BatchedHostEnv:
             return
         if not batch:  # one run, not vmapped: stepping it as a run of many costs a one-pool step 3.5-4.5 us more
             places, results = [()], [self.pools[int(handle)].step(action)]
+        elif self.shared_pools:
+            pool = self._shared_pool([self.pools[int(h)] for h in handle.reshape(-1)])
+            for array, part in zip(out, pool.step(action.reshape(-1, action.shape[-1]))):
+                array[...] = part.reshape(array.shape)
+            return
         else:
             pools = [self.pools[int(h)] for h in handle.reshape(-1)]
             places = np.ndindex(*batch)  # handle.reshape(-1)'s order
@@ -193,6 +239,15 @@ class BatchedHostEnv:
         for run, result in zip(places, results):
             for array, part in zip(out, result):
                 array[run] = part
+
+    @staticmethod
+    def _shared_pool(shares: list[PoolShare]) -> HostSimulators:
+        """The pool that `shares` make up whole, each at its place; a step of any other set of
+        runs has no pool to step (their group's runs step together, or not at all)."""
+        pool, runs = shares[0].pool, len(shares)
+        if [(share.pool, share.place, share.runs) for share in shares] != [(pool, place, runs) for place in range(runs)]:
+            raise RuntimeError("runs sharing a pool of host simulators were stepped apart from their group")
+        return pool
 
     def first_observations(self, seed: int = 0) -> np.ndarray:
         """The first observations [num_envs, obs] of a fresh pool, reset once on the host and
@@ -208,7 +263,8 @@ class BatchedHostEnv:
         gets zeros from then on."""
         self.closed.update(self.pools)  # before the pools go: a step in flight finds its handle here
         pools, self.pools = self.pools, {}
-        for pool in pools.values():
+        distinct = {id(pool): pool for pool in (p.pool if isinstance(p, PoolShare) else p for p in pools.values())}
+        for pool in distinct.values():  # a shared pool once, whatever its runs
             pool.close()
 
     def _call(
@@ -240,7 +296,8 @@ class BatchedHostEnv:
         # Drawn in JAX so that raw and typed keys both work; below 2^30 so that a simulator that
         # seeds environment i with seed + i (envpool) stays within int32.
         seed = jax.random.randint(key, (), 0, 2**30, dtype=jnp.int32)
-        handle, obs = self._call(self._host_reset, self.reset_shapes, seed)
+        batched = "broadcast_all" if self.shared_pools else "sequential"
+        handle, obs = self._call(self._host_reset, self.reset_shapes, seed, vmap_method=batched)
         return HostState(handle), first_step(obs)
 
     def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
