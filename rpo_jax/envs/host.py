@@ -214,7 +214,8 @@ class BatchedHostEnv:
     def _host_step(self, out: tuple[np.ndarray, ...], handle: np.ndarray, action: np.ndarray) -> None:
         """handle [*runs] and action [*runs, N, act] -> `out` (obs, reward, terminated, truncated,
         final_obs), each [*runs, ...]: under `jax.vmap` the runs' steps arrive in one call (`runs`
-        empty without it), and their pools are stepped side by side. Each pool's results are
+        empty without it), and their pools are stepped side by side (a shared pool once, whole,
+        its results reshaped into `out`). Each pool's results are
         written straight into `out`, not stacked first: the scan's own cost a step of five pools
         fell from 36 to 22 us (benchmarks/RESULTS.md, "The pools' results written in place")."""
         batch = handle.shape
