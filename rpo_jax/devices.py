@@ -150,11 +150,7 @@ class Placement:
         programs = {size: self._group_update(trainer, size, abstract_state) for size in set(groups)}  # one for equal groups
         updates = [programs[size] for size in groups]
 
-        @jax.jit
-        def split(state: ppo.TrainState) -> list[ppo.TrainState]:
-            return [jax.tree.map(lambda leaf: leaf[: groups[0]], state), jax.tree.map(lambda leaf: leaf[groups[0] :], state)]
-
-        joined = jax.jit(lambda trees: jax.tree.map(lambda *leaves: jax.numpy.concatenate(leaves), *trees))
+        split, joined = jax.jit(lambda state: _in_groups(state, groups[0])), jax.jit(_joined)
         # As one scan's outputs: [runs, chunk, ...].
         stacked = jax.jit(lambda outputs: jax.tree.map(lambda *leaves: jax.numpy.stack(leaves, axis=1), *outputs))
 
@@ -212,13 +208,7 @@ class Placement:
         """`runs_fn` (on a batch of runs) on each of the epochs placement's groups apart, joined: the
         runs that step together start together, so that the pool they share is built for them."""
         first = run_groups(self.num_runs)[0]
-
-        def grouped(*args: Any) -> Any:
-            head = runs_fn(*jax.tree.map(lambda leaf: leaf[:first], args))
-            tail = runs_fn(*jax.tree.map(lambda leaf: leaf[first:], args))
-            return jax.tree.map(lambda *leaves: jax.numpy.concatenate(leaves), head, tail)
-
-        return grouped
+        return lambda *args: _joined([runs_fn(*group) for group in _in_groups(args, first)])
 
     def _per_device(self, runs_fn: Callable) -> Callable:
         """`runs_fn` (on a batch of runs' states) jitted for this placement."""
@@ -285,6 +275,16 @@ def run_groups(num_runs: int) -> tuple[int, int]:
 def round_up(count: int, multiple: int) -> int:
     """`count` rounded up to a multiple of `multiple`: the runs padded to fill `multiple` devices."""
     return -(-count // multiple) * multiple
+
+
+def _in_groups(tree: Any, first: int) -> list[Any]:
+    """`tree`'s runs [R, ...] as the epochs placement's two groups: the first `first`, then the rest."""
+    return [jax.tree.map(lambda leaf: leaf[:first], tree), jax.tree.map(lambda leaf: leaf[first:], tree)]
+
+
+def _joined(trees: list[Any]) -> Any:
+    """The groups' trees joined again along the run axis (`_in_groups` undone)."""
+    return jax.tree.map(lambda *leaves: jax.numpy.concatenate(leaves), *trees)
 
 
 def _stacked(tree: Any) -> Any:
