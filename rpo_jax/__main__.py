@@ -14,7 +14,7 @@ COMMANDS = {
     "train": ("rpo_jax.train", "train PPO, RPO, RAD or DrAC on one environment"),
     "experiment": ("rpo_jax.experiment", "run one of the paper's comparisons"),
     "evaluate": ("rpo_jax.evaluate", "evaluate a trained run's policy"),
-    "report": ("rpo_jax.report", "tables, statistics and figures from runs and experiments"),
+    "report": ("rpo_jax.report.compose", "tables, statistics and figures from runs and experiments"),
     "export": ("rpo_jax.export", "a trained policy as ONNX or NumPy arrays"),
     "envs": ("rpo_jax.envs.__main__", "list the environments, or check one"),
 }

@@ -34,6 +34,7 @@ class Algorithm:
     summary: str
     augmentation: str  # one of AUGMENTATIONS
     options: tuple[str, ...] = ()  # the algorithm-specific Config fields it uses besides hyperparameters
+    perturbs_location: bool = False  # RPO: the update perturbs the policy's location by U(-rpo_alpha, rpo_alpha)
 
     @property
     def reads(self) -> tuple[str, ...]:
@@ -46,7 +47,7 @@ ALGORITHMS: dict[str, Algorithm] = {
     algorithm.name: algorithm
     for algorithm in (
         Algorithm("ppo", "PPO with the clipped surrogate", "none"),
-        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none"),
+        Algorithm("rpo", "PPO whose policy location is perturbed in the update (the default)", "none", perturbs_location=True),
         Algorithm("rad", "PPO on amplitude-scaled observations (RAD)", "rad", ("aug_low", "aug_high")),
         Algorithm(
             "drac", "PPO with DrAC's regularisers towards amplitude-scaled observations", "drac", ("aug_low", "aug_high"),

@@ -1,7 +1,7 @@
 """Counts of non-finite numbers in an update, for the runner's guard against training on them,
 and the running statistics that training reads. Apart from `rpo_jax.ppo`, which returns them
 beside each update's metrics (`Trainer.scan_diagnosed_updates`), since the update may run as two
-programs (`rpo_jax.devices`' epochs placement), each counting its own half."""
+programs (`rpo_jax.parallel.devices`' epochs placement), each counting its own half."""
 
 from __future__ import annotations
 

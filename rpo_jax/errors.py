@@ -10,7 +10,6 @@ import sys
 import threading
 from typing import Callable, Iterator
 
-
 # The exit code of a run stopped by a non-finite number (`Diverged`).
 DIVERGED_EXIT = 1
 

@@ -7,14 +7,14 @@ The policy acts deterministically (the location of its distribution) unless --st
 result says which. Returns are the environment's own rewards (no reward scaling or normalisation), one episode
 per parallel environment, each to its end or the time limit.
 
-It runs training's own evaluation program (`rpo_jax.evaluation`) on all the directory's runs
+It runs training's own evaluation program (`rpo_jax.run.eval_program`) on all the directory's runs
 and prints the one asked for. By default the episodes are those of each run's final evaluation
 in training (its --eval-episodes, keys from its seed and last update), so a deterministic result
 is the `eval_return` that training logged last, bit for bit, on any task; `--seed` and
 `--eval-episodes` choose others. Another program (one run under a plain `jax.jit`) acts the
 same to float rounding only, which a chaotic task (Cartpole) amplifies into other returns.
 
-Videos (`rpo_jax.video`) are drawn offscreen by MuJoCo's renderer, or by a host-side suite's
+Videos (`rpo_jax.run.video`) are drawn offscreen by MuJoCo's renderer, or by a host-side suite's
 own rendering (Gymnasium, DeepMind Control). On a machine without a display MuJoCo needs an
 OpenGL backend that works headless: EGL (Mesa's `libegl1` works on a CPU; rpo_jax picks it
 when no DISPLAY is set) or OSMesa (`MUJOCO_GL=osmesa`, package `libosmesa6`), chosen with the
@@ -32,9 +32,9 @@ from typing import TYPE_CHECKING, Annotated, Sequence
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.rundir import RunDir, check_new_file
+from rpo_jax.run.directory import RunDir, check_new_file
+from rpo_jax.run.options import CompileCache, EvalEpisodes, TrainedRun, check_seeds, parse, refuse_old_flags
 from rpo_jax.scores import sample_std, with_spread
-from rpo_jax.spec import CompileCache, EvalEpisodes, TrainedRun, check_seeds, parse, refuse_old_flags
 
 PROG = "python -m rpo_jax.evaluate"
 
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
 def episode_returns(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool) -> np.ndarray:
     """The undiscounted return of the first episode of each of `episodes` parallel copies, for
     any policy function (`benchmarks/random_returns.py`'s uniform one); a trained run's are
-    `evaluation.saved_evaluation`'s, as in training."""
+    `eval_program.saved_evaluation`'s, as in training."""
     import functools
 
     import jax
@@ -111,17 +111,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run_command(args: EvaluateArgs) -> None:
-    saved, run = args.trained.record(), args.trained.index()
+    saved, run = RunDir(args.trained.run_dir).trained_run(args.trained.run)
     if args.video:
         check_video_path(args.video)
     import jax
 
-    from rpo_jax import evaluation, runner, video
-    from rpo_jax.plan import PLAN_DEFAULTS
-    from rpo_jax.policy import load_runs
+    from rpo_jax.run import chunks, eval_program, video
+    from rpo_jax.run.plan import PLAN_DEFAULTS
+    from rpo_jax.run.saved_policy import load_runs
 
     # The evaluation program is the largest a command compiles after training's (seconds on a CPU).
-    runner.use_compile_cache(args.cache.cache_directory)
+    chunks.use_compile_cache(args.cache.cache_directory)
     runs = load_runs(args.trained.run_dir)  # before the environment: refuses an edited config.json
     env = rebuilt_env(saved["env"], args.trained.run_dir)
     if args.video:
@@ -131,7 +131,7 @@ def run_command(args: EvaluateArgs) -> None:
     seeds = [entry["seed"] if args.seed is None else args.seed for entry in saved["runs"]]
     deterministic = not args.stochastic
     # Training's program over all the runs, as in training: another rounds differently (module docstring).
-    returns, means, run_policy = evaluation.saved_evaluation(runs, env, episodes, seeds, deterministic)
+    returns, means, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
     spread = with_spread(f"{means[run]:.2f}", f" ± {sample_std(returns[run]):.2f}", episodes)
     print(
         f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "

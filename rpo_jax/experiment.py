@@ -4,7 +4,7 @@
     python -m rpo_jax.experiment ppo-vs-rpo --suite gym --num-seeds 3
     python -m rpo_jax.experiment long-horizon --total-timesteps 20000000
 
-Each (environment, job) is one training run (`rpo_jax.runner`): its seeds, and the values of a
+Each (environment, job) is one training run (`rpo_jax.run.chunks`): its seeds, and the values of a
 swept hyperparameter where a job has one, train together in one compiled program. Everything goes
 under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md` and
 `figures/` (see `rpo_jax.report`).
@@ -27,13 +27,14 @@ from typing import Any, Literal, Sequence
 
 import tyro
 
-from rpo_jax import envs, report
+from rpo_jax import envs
 from rpo_jax.config import PRESETS, SWEEPABLE, Config
 from rpo_jax.envs import dmc_tasks
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.files import write_json
-from rpo_jax.rundir import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
-from rpo_jax.spec import (
+from rpo_jax.report import compose
+from rpo_jax.run.directory import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
+from rpo_jax.run.files import write_json
+from rpo_jax.run.options import (
     JOINING_FIELDS, PLACEMENT_FIELDS, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse,
     refuse_old_flags,
 )  # fmt: skip
@@ -160,7 +161,7 @@ class ExperimentArgs:
     run: tyro.conf.OmitArgPrefixes[RunSpec] = RunSpec(num_seeds=PAPER_SEEDS)
     processes: tyro.conf.OmitArgPrefixes[Processes] = Processes()
     tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
-    # The flags given (`spec.given_fields`): the config fields given override the presets'.
+    # The flags given (`options.given_fields`): the config fields given override the presets'.
     given: tyro.conf.Suppress[frozenset[str]] = frozenset()
 
 
@@ -319,7 +320,7 @@ def job_run(definition: dict, job: Job, directory: Path | None) -> RunSpec:
 def check_jobs(definition: dict, jobs: Sequence[Job]) -> dict[tuple[str, str], list[dict[str, float]]]:
     """Refuses, before the experiment writes anything, a definition that one of its runs would
     refuse; returns each run's sweep grid by (environment, job name), for `job_plan`."""
-    from rpo_jax import plan
+    from rpo_jax.run import plan
 
     grids = {}
     for env in definition["envs"]:
@@ -337,7 +338,7 @@ def job_plan(
 ) -> Any:  # fmt: skip
     """The training run of `job` on `env`, as a plan; `grid` is its sweep's, as `check_jobs`
     found it (None: checked here)."""
-    from rpo_jax import plan
+    from rpo_jax.run import plan
 
     preset, config = job_config(definition, env, job)
     processes = Processes(**{name: definition[name] for name in PLACEMENT_FIELDS if name in definition})
@@ -354,7 +355,7 @@ def run_experiment(args: ExperimentArgs) -> Path:
     with hold_lock(out):
         prepare_out(out, definition)
         run_jobs(args, out, definition, jobs, grids)
-        report.build(out, [out])
+        compose.build(out, [out])
     return out
 
 
@@ -363,7 +364,7 @@ def run_jobs(
 ) -> None:  # fmt: skip
     """Every (environment, job) run not finished yet, resumed where it started; results.csv
     after each. `grids`: each run's sweep grid, from `check_jobs`."""
-    from rpo_jax import plan
+    from rpo_jax.run import plan
     from rpo_jax.train import train_with_display
 
     total = len(definition["envs"]) * len(jobs)
@@ -384,7 +385,7 @@ def run_jobs(
         group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
         summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)
         print(progress_line(prefix, job, summary), flush=True)
-        report.write_results(out, collect_rows(out, definition, jobs))
+        compose.write_results(out, collect_rows(out, definition, jobs))
 
 
 def progress_line(prefix: str, job: Job, summary: dict) -> str:
@@ -412,8 +413,8 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
                         "dist": config["config"]["dist"],
                         **{name: metrics[name] for name in SWEEPABLE},
                         "seed": metrics["seed"],
-                        **{name: metrics[name] for name in report.METRIC_COLUMNS},
-                        **({report.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
+                        **{name: metrics[name] for name in compose.METRIC_COLUMNS},
+                        **({compose.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
                     }
                 )
     return rows
@@ -432,12 +433,12 @@ def resume_line(out: object | None) -> str:
 
 def run_command(argv: Sequence[str] | None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else argv)
-    from rpo_jax import devices
+    from rpo_jax.parallel import devices
 
     devices.split_cpu(args.processes.cpu_devices)
     devices.check_cpu_split(args.processes.cpu_devices)
     out = run_experiment(args)
-    print(f"report: {out / report.REPORT_FILE}")
+    print(f"report: {out / compose.REPORT_FILE}")
     return 0
 
 

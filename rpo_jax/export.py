@@ -53,8 +53,8 @@ import numpy as np
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.rundir import check_new_file
-from rpo_jax.spec import TrainedRun, parse
+from rpo_jax.run.directory import RunDir, check_new_file
+from rpo_jax.run.options import TrainedRun, parse
 
 ACTIVATIONS = {
     "tanh": np.tanh,
@@ -73,7 +73,7 @@ OPSET = 17
 
 def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray]:
     """The arrays of the `.npz` for run `run` of `run_dir` (None: as `rpo_jax.load_policy`'s)."""
-    from rpo_jax.policy import load_run
+    from rpo_jax.run.saved_policy import load_run
 
     config, spec, actor_params, stats = load_run(run_dir, run)
     mlp = actor_params["params"]["MLP_0"]
@@ -179,10 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The command line: exit code 0, or 2 for bad input."""
     with command_failures() as exit:
         args = parse(ExportArgs, sys.argv[1:] if argv is None else argv, None, "python -m rpo_jax.export")
-        args.trained.record()
+        _, run = RunDir(args.trained.run_dir).trained_run(args.trained.run)
         outputs = {"--onnx": args.onnx, "--npz": args.npz}
         check_outputs({flag: path for flag, path in outputs.items() if path is not None})
-        arrays = policy_arrays(args.trained.run_dir, args.trained.index())
+        arrays = policy_arrays(args.trained.run_dir, run)
         contents = {}
         if args.onnx:
             contents[args.onnx] = onnx_bytes(arrays)

@@ -1,6 +1,6 @@
 """The sweepable hyperparameters, declared once: the fields of `Hyperparams`.
 
-Training holds them as arrays in its state (a pytree: `rpo_jax.ppo` registers the class), so
+Training holds them as arrays in its state (a pytree: `rpo_jax.loss` registers the class), so
 that `jax.vmap` over a batch of them trains a whole grid in one compiled program. Each field's
 metadata says what the loss does with it (`doc`) and which algorithms' losses read it
 (`read_by`; every algorithm's when empty); its default is the `Config` field of the same name,
@@ -59,3 +59,11 @@ def explored_fields(text: str) -> list[tuple[str, str]]:
     """--pbt-fields' "NAME=LOW:HIGH,..." as (NAME, "LOW:HIGH") pairs, in order and unchecked
     (`rpo_jax.pbt.parse_fields` checks them)."""
     return [(name, bounds) for name, _, bounds in (part.partition("=") for part in text.split(",") if part)]
+
+
+# Population-based training's (`rpo_jax.pbt`) explore rules, and the factors that "perturb" multiplies by, each
+# as likely (the paper's 0.8 and 1.2; 1.25 undoes 0.8, so that a value perturbed both ways comes back).
+EXPLORE_RULES = ("perturb", "resample")
+# The bottom fraction of members that copy members of the top fraction, unless --pbt-quantile says.
+PBT_QUANTILE = 0.25
+PERTURB_FACTORS = (0.8, 1.25)

@@ -19,12 +19,13 @@ from rpo_jax.config import Config
 from rpo_jax.hyperparams import SWEEPABLE, Hyperparams
 from rpo_jax.networks import Actor, Critic, perturb_location, policy_distribution
 
-# The declaration imports no JAX (the command line reads it); training carries it as a pytree.
+# The declaration imports no JAX (the command line reads it); the loss, the first of the algorithm's
+# modules to read it, registers it as the pytree that training carries.
 jax.tree_util.register_dataclass(Hyperparams, data_fields=list(SWEEPABLE), meta_fields=[])
 
 
 # Steps of the GAE recursion per iteration of its loop. More let XLA fuse steps; on the CPU that
-# is no faster and rounds otherwise (benchmarks/RESULTS.md, issue 32); untried on a GPU.
+# is no faster and rounds otherwise; untried on a GPU.
 GAE_UNROLL = 1
 
 
@@ -113,10 +114,10 @@ def trained_policy(
 ) -> tuple[distrax.Distribution, jax.Array, jax.Array]:
     """The policy the loss trains on a minibatch [B] (RPO's with its location perturbed), the
     stored actions' log-probabilities [B] under it, and under the unperturbed policy. Only RPO
-    reads alpha: the others' is 0, whose draw would change no number (loc + 0 is loc) but cost a
-    random draw and a second log-probability in every gradient step."""
+    perturbs: the others' alpha is 0, whose draw would change no number (loc + 0 is loc) but cost
+    a random draw and a second log-probability in every gradient step."""
     policy = policy_distribution(loc, log_scale, config.dist)
-    if "rpo_alpha" not in config.algorithm.reads:
+    if not config.algorithm.perturbs_location:
         log_probs = policy.log_prob(actions)
         return policy, log_probs, log_probs
     perturbed = policy_distribution(perturb_location(loc, key, hparams.rpo_alpha), log_scale, config.dist)

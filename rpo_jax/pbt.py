@@ -29,8 +29,7 @@ import jax.numpy as jnp
 from rpo_jax import envs, ppo
 from rpo_jax.config import SWEEPABLE, check_applies
 from rpo_jax.errors import UsageError
-from rpo_jax.hyperparams import LOG_SCALE, explored_fields
-from rpo_jax.spec import PERTURB_FACTORS, Pbt
+from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, explored_fields
 
 # Streams of the population's keys, apart from training's and evaluation's.
 INIT_STREAM, STEP_STREAM = 0x9B70, 0x9B71
@@ -42,8 +41,8 @@ class Rule:
     `quantile` of members that copy (and of the members they copy from), and the explore rule."""
 
     fields: tuple[tuple[str, float, float], ...]
-    quantile: float = Pbt.pbt_quantile
-    explore: str = Pbt.pbt_explore
+    quantile: float = PBT_QUANTILE
+    explore: str = EXPLORE_RULES[0]
 
 
 def parse_fields(text: str, algo: str) -> tuple[tuple[str, float, float], ...]:

@@ -1,23 +1,22 @@
-"""PPO and RPO as one jittable training function, built from module-level pieces.
+"""PPO and RPO as one jittable training function, read top to bottom as the paper's Algorithm 1.
 
     train = make_train(config, env)          # env: a single environment, see rpo_jax.envs
     state, metrics = jax.jit(train)(key)     # metrics: one scalar per update per field
     jax.jit(jax.vmap(train))(keys)           # several seeds in one program
 
-One update is `rollout` (the environments stepped by the current policy), `make_batch` (values,
-GAE and the flattened batch), `minibatch_epochs` (shuffled passes over the batch) and, for each
-minibatch, `gradient_step`: the one place where gradients are taken and the optimiser steps.
+The state (`TrainState`), the trainer (`Trainer`: the static parts and the entry points), then
+one update: `collect` (`rollout` the environments under the current policy, `make_batch` its
+values, advantages and batch) and `learn` (`minibatch_epochs` of `gradient_step`s, the one
+place where gradients are taken and the optimiser steps). The loss and the advantages are
+`rpo_jax.loss`'s, where RPO differs from PPO.
 
 A trainer made with `axis_name` (and `env_shards` D) is one device's part of a run whose
-environments are split over that device axis (data parallel, see `rpo_jax.devices`): it steps
-num_envs / D environments, `gradient_step` averages the gradients and loss metrics over the
-axis, the normalisers merge their statistics over it, advantages are normalised by the
+environments are split over that device axis (data parallel, see `rpo_jax.parallel.devices`):
+it steps num_envs / D environments, `gradient_step` averages the gradients and loss metrics
+over the axis, the normalisers merge their statistics over it, advantages are normalised by the
 statistics of the whole minibatch, and the random draws that differ per environment or per
 sample (actions, resets, minibatch shuffles, RPO's noise) come from keys folded with the
 device's index, so no two devices draw alike.
-
-The loss and the advantages are `rpo_jax.loss`'s (where RPO differs from PPO); this module is
-the loop around them.
 """
 
 from __future__ import annotations
@@ -34,15 +33,12 @@ from flax import struct
 from rpo_jax import diagnostics, envs
 from rpo_jax.acting import wrap_for_training
 from rpo_jax.config import Config
+from rpo_jax.cpu_workarounds import shuffled_indices
 from rpo_jax.hyperparams import Hyperparams
 from rpo_jax.loss import Batch, LossMetrics, compute_gae, ppo_loss
 from rpo_jax.networks import Actor, Critic, actor_log_scale, policy_distribution
 
-
-def device_key(key: jax.Array, axis_name: str | None) -> jax.Array:
-    """`key` folded with the device's index on `axis_name`, for draws that must differ between
-    the devices that share a run; `key` itself without an axis."""
-    return key if axis_name is None else jax.random.fold_in(key, jax.lax.axis_index(axis_name))
+# ---------------------------------------------------------------- the state
 
 
 @struct.dataclass
@@ -91,26 +87,7 @@ class Transition:
     episode_length: jax.Array
 
 
-def make_optimizer(config: Config) -> optax.GradientTransformation:
-    """Global-norm clipping then Adam, with the learning rate held in the state so that the
-    linear and adaptive schedules set it between steps."""
-
-    def chain(learning_rate):
-        return optax.chain(
-            optax.clip_by_global_norm(config.max_grad_norm),
-            optax.adam(learning_rate, eps=config.adam_eps),
-        )
-
-    return optax.inject_hyperparams(chain)(learning_rate=config.lr)
-
-
-def set_learning_rate(opt_state: Any, lr: jax.Array) -> Any:
-    return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
-
-
-def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
-    actor = Actor(action_size, tuple(config.hidden_sizes), config.activation)
-    return actor, Critic(tuple(config.hidden_sizes), config.activation)
+# ---------------------------------------------------------------- the trainer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,10 +96,8 @@ class Trainer:
 
     `init(key, hparams=None)` builds the state; `update(state)` is one update; `train(key,
     hparams=None)` the whole run (what `make_train` returns); `scan_updates(state, n)` does n
-    updates in one `lax.scan`. A long run calls one compiled
-    chunk of updates repeatedly (all chunks the same length, so it compiles once) to report
-    progress between chunks.
-    `restart_episodes(state)` replaces the episodes in flight by fresh ones and keeps the rest."""
+    updates in one `lax.scan`. A long run calls one compiled chunk of updates repeatedly (all
+    chunks the same length, so it compiles once) to report progress between chunks."""
 
     config: Config
     env: envs.NormalizeObservation  # the wrapped, batched environment that training steps
@@ -132,10 +107,23 @@ class Trainer:
     axis_name: str | None = None  # the device axis one run's environments are split over, if any
 
     def init(self, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
-        return init_state(self, key, hparams)
+        """The state before the first update: fresh networks, optimiser and environments;
+        `hparams` default to the config's values."""
+        hparams = Hyperparams.from_config(self.config) if hparams is None else hparams
+        key, actor_key, critic_key, env_key = jax.random.split(key, 4)
+        dummy_obs = jnp.zeros((self.env.spec.observation_size,))
+        params = {"actor": self.actor.init(actor_key, dummy_obs), "critic": self.critic.init(critic_key, dummy_obs)}
+        env_state, ts = self.env.reset(device_key(env_key, self.axis_name))
+        zero = jnp.zeros(())
+        opt_state = set_learning_rate(self.optimizer.init(params), hparams.lr)
+        return TrainState(
+            params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
+            envs.RunningMeanStd.zeros(()), zero, zero,
+        )  # fmt: skip
 
     def update(self, state: TrainState) -> tuple[TrainState, Metrics]:
-        return update(self, state)
+        """One update (Algorithm 1's outer loop body): collect a rollout, then learn from it."""
+        return learn(self, collect(self, state))
 
     def train(self, key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
         """The whole run, `config.num_updates` updates from `init(key, hparams)`: the final state
@@ -151,8 +139,9 @@ class Trainer:
         """`scan_updates` with each update's `Diagnostics` next to its metrics."""
 
         def step(state, _):
-            new_state, metrics, traj = update_with_rollout(self, state)
-            return new_state, (metrics, diagnostics.Diagnostics.of(diagnostics.count_rollout(traj), new_state, self.config))
+            collected = collect(self, state)
+            new_state, metrics = learn(self, collected)
+            return new_state, (metrics, diagnostics.Diagnostics.of(collected.rollout_counts, new_state, self.config))
 
         return jax.lax.scan(step, state, None, length=num_updates)
 
@@ -182,29 +171,73 @@ def make_trainer(config: Config, env: envs.Env, axis_name: str | None = None, en
     """The trainer of `config` on `env`; with `axis_name`, one device's part of a run whose
     environments are split in `env_shards` equal shares over that device axis. A bad config is
     refused (UsageError)."""
-    return build_trainer(config.validate(), env, axis_name, env_shards)
-
-
-def build_trainer(config: Config, env: envs.Env, axis_name: str | None = None, env_shards: int = 1) -> Trainer:
-    """`make_trainer` for a config validated already (a plan's, `rpo_jax.plan`)."""
+    config = config.validate()
     actor, critic = make_networks(config, env.spec.action_size)
     wrapped = wrap_for_training(env, config, env_shards, axis_name)
     return Trainer(config, wrapped, actor, critic, make_optimizer(config), axis_name)
 
 
-def init_state(trainer: Trainer, key: jax.Array, hparams: Hyperparams | None = None) -> TrainState:
-    config, spec = trainer.config, trainer.env.spec
-    hparams = Hyperparams.from_config(config) if hparams is None else hparams
-    key, actor_key, critic_key, env_key = jax.random.split(key, 4)
-    dummy_obs = jnp.zeros((spec.observation_size,))
-    params = {"actor": trainer.actor.init(actor_key, dummy_obs), "critic": trainer.critic.init(critic_key, dummy_obs)}
-    env_state, ts = trainer.env.reset(device_key(env_key, trainer.axis_name))
-    zero = jnp.zeros(())
-    opt_state = set_learning_rate(trainer.optimizer.init(params), hparams.lr)
-    return TrainState(
-        params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
-        envs.RunningMeanStd.zeros(()), zero, zero,
+def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
+    """`train(key, hparams=None) -> (final state, per-update metrics)`: the whole run,
+    jittable and vmappable. `jax.vmap(train)(keys, hparams)` with [R]-leaved `Hyperparams`
+    trains a sweep of R runs (grid points x seeds) in one program. `make_trainer(config, env).train`
+    is the same function, with the trainer that `make_policy` and `save_run` take."""
+    return make_trainer(config, env).train
+
+
+# ---------------------------------------------------------------- one update: collect, then learn
+
+
+@struct.dataclass
+class Collected:
+    """An update's first half, for its minibatch epochs: the state after the rollout (its key
+    moved on, this update's learning rate set, the return statistics updated), the batch [B],
+    the epochs' key, the rollout's finished episodes (`finished_episodes`) and its count of
+    non-finite numbers (`diagnostics.count_rollout`). `--split-epochs` runs `collect` and `learn`
+    on different devices, so this is all that passes between them."""
+
+    state: TrainState
+    batch: Batch
+    epochs_key: jax.Array
+    episodes: tuple[jax.Array, jax.Array, jax.Array]
+    rollout_counts: tuple[jax.Array, jax.Array]
+
+
+def collect(trainer: Trainer, state: TrainState) -> Collected:
+    """The rollout under the current policy and its batch of advantages and returns."""
+    config = trainer.config
+    key, rollout_key, epochs_key = jax.random.split(state.key, 3)
+    opt_state = state.opt_state
+    if config.lr_schedule == "linear":
+        opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / config.num_updates))
+    env_state, obs, traj = rollout(trainer, state.params, state.env_state, state.obs, rollout_key)
+    batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
+    episodes = finished_episodes(traj, state, trainer.axis_name)
+    state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
+    return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj))
+
+
+def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:
+    """The minibatch epochs on a collected batch: the state after the update, and its metrics."""
+    state, (episode_return, episode_length, finished) = collected.state, collected.episodes
+    params, opt_state, loss_metrics = minibatch_epochs(
+        trainer, state.hparams, state.params, state.opt_state, collected.batch, collected.epochs_key
+    )
+    update_count = state.update + 1
+    metrics = Metrics(
+        env_steps=update_count * trainer.config.batch_size,
+        episode_return=episode_return,
+        episode_length=episode_length,
+        episodes_finished=finished,
+        action_std=jnp.exp(actor_log_scale(params["actor"])).mean(),
+        learning_rate=state.opt_state.hyperparams["learning_rate"],
+        **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
+    )
+    new_state = state.replace(
+        params=params, opt_state=opt_state, update=update_count,
+        last_episode_return=episode_return, last_episode_length=episode_length,
     )  # fmt: skip
+    return new_state, metrics
 
 
 def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key: jax.Array) -> tuple[Any, jax.Array, Transition]:
@@ -271,6 +304,52 @@ def bootstrapped_next_values(critic: Critic, params: dict, traj: Transition, nex
     return jnp.where(traj.truncated, final_values, next_values)
 
 
+def finished_episodes(
+    traj: Transition, state: TrainState, axis_name: str | None = None
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Mean return and length of the episodes that ended in this rollout (the previous
+    update's where none did), and how many ended; with `axis_name`, over all its devices."""
+    sums = (traj.terminated | traj.truncated).sum(), traj.episode_return.sum(), traj.episode_length.sum()
+    if axis_name is not None:
+        sums = jax.lax.psum(sums, axis_name)
+    finished, return_sum, length_sum = sums
+    any_finished = finished > 0
+    denominator = jnp.maximum(finished, 1)
+    episode_return = jnp.where(any_finished, return_sum / denominator, state.last_episode_return)
+    episode_length = jnp.where(any_finished, length_sum / denominator, state.last_episode_length)
+    return episode_return, episode_length, finished
+
+
+def minibatch_epochs(
+    trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
+) -> tuple[dict, Any, LossMetrics]:
+    """`update_epochs` passes over `batch`, each in `num_minibatches` shuffled minibatches.
+    With a device axis, each device shuffles its own share of the batch and takes its share of
+    every minibatch from it, so over an epoch every sample is used once, as on one device.
+    Returns the parameters, the optimiser state and the loss metrics [epochs, minibatches]."""
+    config = trainer.config
+
+    def minibatch(carry, inputs):
+        params, opt_state = carry
+        params, opt_state, metrics = gradient_step(trainer, hparams, params, opt_state, *inputs)
+        return (params, opt_state), metrics
+
+    # The batch is read by every epoch and changed by none: closed over, not carried.
+    def epoch(carry, key):
+        permute_key, loss_key = (device_key(k, trainer.axis_name) for k in jax.random.split(key))
+        permutation = shuffled_indices(permute_key, batch.obs.shape[0])
+        minibatches = jax.tree.map(
+            lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]),
+            batch,
+        )
+        loss_keys = jax.random.split(loss_key, config.num_minibatches)
+        return jax.lax.scan(minibatch, carry, (minibatches, loss_keys))
+
+    keys = jax.random.split(key, config.update_epochs)
+    (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
+    return params, opt_state, metrics
+
+
 def gradient_step(
     trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
 ) -> tuple[dict, Any, LossMetrics]:
@@ -293,137 +372,32 @@ def gradient_step(
     return params, opt_state, metrics
 
 
-def shuffled_indices(key: jax.Array, n: int) -> jax.Array:
-    """A uniformly random permutation of range(n), int32 [n]: the order `minibatch_epochs`
-    takes the batch in. `jax.random.permutation` draws one by sorting random keys with the
-    indices as values; XLA's CPU backend sorts one array of integers up to 6 times faster than
-    keys with values (`benchmarks/shuffle.py`), and with `jax.random.permutation` the epochs of
-    compare.py's 4096 environments spent a third of their time sorting. So each round sorts
-    random bits packed above the indices' bits (every packed key distinct) and reads the order
-    from the low bits. Over the rounds the random bits add up to 3 x log2(n), as jax's rounds
-    do, so ties, which keep the previous round's order, have a chance below 1/n. Rounds grow
-    with n: 2 at 2**11 samples, 4 at 2**17, 11 at 2**25."""
-    index_bits = max(1, (n - 1).bit_length())
-    random_bits = 32 - index_bits
-    positions = jnp.arange(n, dtype=jnp.uint32)
-    order = positions
-    for round_key in jax.random.split(key, -(-3 * index_bits // random_bits)):
-        packed = (jax.random.bits(round_key, (n,), jnp.uint32) << index_bits) | positions
-        order = order[jax.lax.sort(packed) & ((1 << index_bits) - 1)]
-    return order.astype(jnp.int32)
+# ---------------------------------------------------------------- the parts the trainer is built from
 
 
-def minibatch_epochs(
-    trainer: Trainer, hparams: Hyperparams, params: dict, opt_state: Any, batch: Batch, key: jax.Array
-) -> tuple[dict, Any, LossMetrics]:
-    """`update_epochs` passes over `batch`, each in `num_minibatches` shuffled minibatches.
-    With a device axis, each device shuffles its own share of the batch and takes its share of
-    every minibatch from it, so over an epoch every sample is used once, as on one device.
-    Returns the parameters, the optimiser state and the loss metrics [epochs, minibatches]."""
-    config = trainer.config
+def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
+    actor = Actor(action_size, tuple(config.hidden_sizes), config.activation)
+    return actor, Critic(tuple(config.hidden_sizes), config.activation)
 
-    def minibatch(carry, inputs):
-        params, opt_state = carry
-        params, opt_state, metrics = gradient_step(trainer, hparams, params, opt_state, *inputs)
-        return (params, opt_state), metrics
 
-    # The batch is read by every epoch and changed by none: closed over, not carried.
-    def epoch(carry, key):
-        params, opt_state = carry
-        permute_key, loss_key = (device_key(k, trainer.axis_name) for k in jax.random.split(key))
-        permutation = shuffled_indices(permute_key, batch.obs.shape[0])
-        minibatches = jax.tree.map(
-            lambda x: x[permutation].reshape(config.num_minibatches, -1, *x.shape[1:]),
-            batch,
+def make_optimizer(config: Config) -> optax.GradientTransformation:
+    """Global-norm clipping then Adam, with the learning rate held in the state so that the
+    linear and adaptive schedules set it between steps."""
+
+    def chain(learning_rate):
+        return optax.chain(
+            optax.clip_by_global_norm(config.max_grad_norm),
+            optax.adam(learning_rate, eps=config.adam_eps),
         )
-        loss_keys = jax.random.split(loss_key, config.num_minibatches)
-        return jax.lax.scan(minibatch, carry, (minibatches, loss_keys))
 
-    keys = jax.random.split(key, config.update_epochs)
-    (params, opt_state), metrics = jax.lax.scan(epoch, (params, opt_state), keys)
-    return params, opt_state, metrics
+    return optax.inject_hyperparams(chain)(learning_rate=config.lr)
 
 
-def update(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics]:
-    """One update: a rollout, its batch, and the minibatch epochs."""
-    new_state, metrics, _ = update_with_rollout(trainer, state)
-    return new_state, metrics
+def set_learning_rate(opt_state: Any, lr: jax.Array) -> Any:
+    return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
 
 
-def update_with_rollout(trainer: Trainer, state: TrainState) -> tuple[TrainState, Metrics, Transition]:
-    """`update`, also returning its rollout's transitions [T, N]."""
-    collected, traj = collect(trainer, state)
-    return *learn(trainer, collected), traj
-
-
-@struct.dataclass
-class Collected:
-    """An update's first half, for its minibatch epochs: the state after the rollout (its key
-    moved on, this update's learning rate set, the return statistics updated), the batch [B],
-    the epochs' key and the rollout's finished episodes (`finished_episodes`)."""
-
-    state: TrainState
-    batch: Batch
-    epochs_key: jax.Array
-    episodes: tuple[jax.Array, jax.Array, jax.Array]
-
-
-def collect(trainer: Trainer, state: TrainState) -> tuple[Collected, Transition]:
-    """The rollout and its batch: `update` is `learn(trainer, collect(trainer, state)[0])`."""
-    config = trainer.config
-    key, rollout_key, epochs_key = jax.random.split(state.key, 3)
-    opt_state = state.opt_state
-    if config.lr_schedule == "linear":
-        opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / config.num_updates))
-    env_state, obs, traj = rollout(trainer, state.params, state.env_state, state.obs, rollout_key)
-    batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
-    episodes = finished_episodes(traj, state, trainer.axis_name)
-    state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
-    return Collected(state, batch, epochs_key, episodes), traj
-
-
-def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:
-    """The minibatch epochs on a collected batch: the state after the update, and its metrics."""
-    state, (episode_return, episode_length, finished) = collected.state, collected.episodes
-    params, opt_state, loss_metrics = minibatch_epochs(
-        trainer, state.hparams, state.params, state.opt_state, collected.batch, collected.epochs_key
-    )
-    update_count = state.update + 1
-    metrics = Metrics(
-        env_steps=update_count * trainer.config.batch_size,
-        episode_return=episode_return,
-        episode_length=episode_length,
-        episodes_finished=finished,
-        action_std=jnp.exp(actor_log_scale(params["actor"])).mean(),
-        learning_rate=state.opt_state.hyperparams["learning_rate"],
-        **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
-    )
-    new_state = state.replace(
-        params=params, opt_state=opt_state, update=update_count,
-        last_episode_return=episode_return, last_episode_length=episode_length,
-    )  # fmt: skip
-    return new_state, metrics
-
-
-def finished_episodes(
-    traj: Transition, state: TrainState, axis_name: str | None = None
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Mean return and length of the episodes that ended in this rollout (the previous
-    update's where none did), and how many ended; with `axis_name`, over all its devices."""
-    sums = (traj.terminated | traj.truncated).sum(), traj.episode_return.sum(), traj.episode_length.sum()
-    if axis_name is not None:
-        sums = jax.lax.psum(sums, axis_name)
-    finished, return_sum, length_sum = sums
-    any_finished = finished > 0
-    denominator = jnp.maximum(finished, 1)
-    episode_return = jnp.where(any_finished, return_sum / denominator, state.last_episode_return)
-    episode_length = jnp.where(any_finished, length_sum / denominator, state.last_episode_length)
-    return episode_return, episode_length, finished
-
-
-def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
-    """`train(key, hparams=None) -> (final state, per-update metrics)`: the whole run,
-    jittable and vmappable. `jax.vmap(train)(keys, hparams)` with [R]-leaved `Hyperparams`
-    trains a sweep of R runs (grid points x seeds) in one program. `make_trainer(config, env).train`
-    is the same function, with the trainer that `make_policy` and `save_run` take."""
-    return make_trainer(config, env).train
+def device_key(key: jax.Array, axis_name: str | None) -> jax.Array:
+    """`key` folded with the device's index on `axis_name`, for draws that must differ between
+    the devices that share a run; `key` itself without an axis."""
+    return key if axis_name is None else jax.random.fold_in(key, jax.lax.axis_index(axis_name))

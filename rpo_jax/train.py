@@ -9,11 +9,11 @@
     python -m rpo_jax.train --num-seeds 8 --coordinator 10.0.0.1:1234 --num-processes 2 --process-id 0  # and 1 on the other
 
 Writes config.json, metrics.jsonl, summary.json, TensorBoard events, videos with
---capture-video (`rpo_jax.video`) and the trained parameters (see `rpo_jax.load_policy`) to
---out, and checkpoints (see `rpo_jax.checkpoint`) from which `--resume` continues an
+--capture-video (`rpo_jax.run.video`) and the trained parameters (see `rpo_jax.load_policy`) to
+--out, and checkpoints (see `rpo_jax.run.checkpoint`) from which `--resume` continues an
 interrupted run: exactly, except that host-side simulators, which no checkpoint holds, start
 fresh episodes. Every field of `rpo_jax.config.Config` and of
-the run's spec (`rpo_jax.spec`, which `rpo_jax.experiment` shares) is a flag; tyro reads them
+the run's spec (`rpo_jax.run.options`, which `rpo_jax.experiment` shares) is a flag; tyro reads them
 from `TrainArgs`, and JAX is imported only after they parse.
 """
 
@@ -29,9 +29,9 @@ import tyro
 
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import DIVERGED_EXIT, UsageError, command_failures
-from rpo_jax.rundir import env_directory
+from rpo_jax.run.directory import env_directory
+from rpo_jax.run.options import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
 from rpo_jax.scores import with_spread
-from rpo_jax.spec import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
 
 PROG = "python -m rpo_jax.train"
 
@@ -87,7 +87,7 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
 
 
 def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
-    from rpo_jax import plan as plans
+    from rpo_jax.run import plan as plans
 
     given = given_fields(argv)
     if args.resume:
@@ -111,21 +111,21 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
     the tracker asked for and the compile cache unless turned off or several processes train."""
     import jax
 
-    from rpo_jax import runner
-    from rpo_jax.devices import is_primary
-    from rpo_jax.sinks import ProgressDisplay, TensorBoardSink
+    from rpo_jax.parallel.devices import is_primary
+    from rpo_jax.run import chunks
+    from rpo_jax.run.sinks import ProgressDisplay, TensorBoardSink
 
     progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, tracking.quiet or not is_primary())
     # Off with several processes: with JAX 0.12.1 a program that process 0 reads from the cache and
     # the others compile (only process 0 writes it) get different run ids, whose collectives never meet.
-    runner.use_compile_cache(processes.cache_directory if jax.process_count() == 1 else None)
+    chunks.use_compile_cache(processes.cache_directory if jax.process_count() == 1 else None)
     sinks: list[Any] = [TensorBoardSink()]
     if tracking.track == "wandb":
-        from rpo_jax.tracking import WandbSink
+        from rpo_jax.run.wandb_sink import WandbSink
 
         sinks.append(WandbSink(tracking.wandb_project, tracking.wandb_entity, tracking.wandb_mode, tracking.wandb_group))
     try:
-        return runner.train(plan, sinks=sinks, progress=progress)
+        return chunks.train(plan, sinks=sinks, progress=progress)
     finally:
         progress.close()
 
@@ -170,10 +170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def leave(code: int) -> int:
-    """`code`, after this process of several, if it is one, has left the others (`peers.leave`)."""
-    peers = sys.modules.get("rpo_jax.peers")  # imported once JAX is: none before, no other process
-    if peers:  # every process diverges at the same update (they share the metrics): no failure of its own
-        peers.leave(code, alone=code not in (0, DIVERGED_EXIT))
+    """`code`, after this process of several, if it is one, has left the others (`cluster.leave`)."""
+    cluster = sys.modules.get("rpo_jax.parallel.cluster")  # imported once JAX is: none before, no other process
+    if cluster:  # every process diverges at the same update (they share the metrics): no failure of its own
+        cluster.leave(code, alone=code not in (0, DIVERGED_EXIT))
     return code
 
 
@@ -185,7 +185,8 @@ def checked_capture(plan: Any) -> Any:
     """`plan`, once --capture-video is known to draw its environment: refused here in one line,
     before the progress display starts (the runner checks again, for the library's callers)."""
     if plan.capture_video:
-        from rpo_jax import envs, video
+        from rpo_jax import envs
+        from rpo_jax.run import video
 
         video.check_video(envs.make_env(plan.env), "--capture-video")
     return plan
@@ -193,11 +194,11 @@ def checked_capture(plan: Any) -> Any:
 
 def run_command(argv: list[str]) -> int:
     args = parse_args(argv)
-    from rpo_jax import devices, peers  # JAX, first used here: the CPU split and the processes joined first
+    from rpo_jax.parallel import cluster, devices  # JAX, first used here: the CPU split and the processes joined first
 
     where = args.processes
     devices.split_cpu(where.cpu_devices)
-    peers.join_processes(where.coordinator, where.num_processes, where.process_id, where.distributed, where.coordinator_timeout)
+    cluster.join_processes(where.coordinator, where.num_processes, where.process_id, where.distributed, where.coordinator_timeout)
     devices.check_cpu_split(where.cpu_devices)
     plan = devices.refused_together(lambda: checked_capture(make_plan(args, argv)))
     summary = train_with_display(plan, args.tracking, args.processes)

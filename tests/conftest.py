@@ -24,19 +24,19 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 import rpo_jax.envs  # noqa: E402, F401
-from rpo_jax import runner, spec  # noqa: E402
 from rpo_jax.envs import registry  # noqa: E402
+from rpo_jax.run import chunks, options  # noqa: E402
 
-# One persistent compile cache for the whole run, the command line's own (spec.compile_cache_dir),
+# One persistent compile cache for the whole run, the command line's own (options.compile_cache_dir),
 # shared by both pytest workers, the commands the tests start and the docs' examples: many tests
 # train the same small programs, so on a fresh machine (an empty cache) each is compiled once per
 # run instead of once per test. Every program is kept, not only those over a second: the tests'
 # programs are small and each command's process would compile them all again.
-COMPILE_CACHE = spec.compile_cache_dir()
+COMPILE_CACHE = options.compile_cache_dir()
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # for the processes the tests start
 os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILE_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # this process read its flags already
-runner.use_compile_cache(COMPILE_CACHE)
+chunks.use_compile_cache(COMPILE_CACHE)
 
 
 @pytest.fixture

@@ -20,10 +20,11 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from point_mass import PointMass
 
-from rpo_jax import devices, envs, loss, ppo, train
+from rpo_jax import envs, loss, ppo, train
 from rpo_jax.config import Config
-from rpo_jax.devices import AXIS
-from rpo_jax.rundir import RunDir
+from rpo_jax.parallel import devices
+from rpo_jax.parallel.devices import AXIS
+from rpo_jax.run.directory import RunDir
 
 # A tiny Cartpole command: 4 updates, logged every update, no checkpoints.
 TINY_COMMAND = [

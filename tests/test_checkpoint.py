@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rpo_jax.checkpoint import Checkpointer, CheckpointMismatch
+from rpo_jax.run.checkpoint import Checkpointer, CheckpointMismatch
 
 
 def abstract(tree):

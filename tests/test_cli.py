@@ -14,9 +14,9 @@ from flax import serialization
 from rpo_jax import envs, load_policy, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.networks import policy_distribution
-from rpo_jax.report import tail_mean as final_return
-from rpo_jax.rundir import PARAMS_FILE
-from rpo_jax.runner import chunk_length
+from rpo_jax.report.compose import tail_mean as final_return
+from rpo_jax.run.chunks import chunk_length
+from rpo_jax.run.directory import PARAMS_FILE
 
 TINY = [
     "--env", "cartpole", "--algo", "rpo", "--num-envs", "8", "--num-steps", "16",
@@ -158,9 +158,9 @@ def test_help_shows_the_presets_values():
 
 
 def test_report_of_one_training_run_draws_its_curves(run_dir, tmp_path):
-    from rpo_jax import report
+    from rpo_jax.report import compose
 
-    assert report.main([str(run_dir), "--out", str(tmp_path)]) == 0
+    assert compose.main([str(run_dir), "--out", str(tmp_path)]) == 0
     text = (tmp_path / "report.md").read_text()
     assert "# Report: run of cartpole rpo" in text and "| rpo | 2 |" in text
     for name in ("return-entropy.png", "losses.png"):
@@ -169,8 +169,8 @@ def test_report_of_one_training_run_draws_its_curves(run_dir, tmp_path):
 
 
 def test_a_plan_validates_its_config_once_and_a_direct_make_trainer_validates_too(tmp_path, monkeypatch):
-    from rpo_jax import plan as plans
-    from rpo_jax.spec import RunSpec
+    from rpo_jax.run import plan as plans
+    from rpo_jax.run.options import RunSpec
 
     validated = []
     validate = Config.validate

@@ -3,15 +3,15 @@
 import dataclasses
 import typing
 
+import jax
 import pytest
 
-import jax
-
-from rpo_jax import ppo, report
+from rpo_jax import ppo
 from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Config, choices
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import Hyperparams, read_by
 from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS
+from rpo_jax.report import compose
 
 
 def test_the_library_and_the_command_line_share_one_default():
@@ -24,7 +24,8 @@ def test_the_library_and_the_command_line_share_one_default():
 def test_algorithms_that_do_not_perturb_train_with_alpha_zero():
     for name, algorithm in ALGORITHMS.items():
         alpha = Config(algo=name).hyperparameters()["rpo_alpha"]
-        assert alpha == (0.5 if "rpo_alpha" in algorithm.reads else 0.0), name
+        assert algorithm.perturbs_location == ("rpo_alpha" in algorithm.reads), name
+        assert alpha == (0.5 if algorithm.perturbs_location else 0.0), name
     assert float(ppo.Hyperparams.from_config(Config(algo="ppo", rpo_alpha=3.0)).rpo_alpha) == 0.0
 
 
@@ -42,7 +43,7 @@ def test_declared_choices_are_the_implemented_ones():
 def test_the_sweepable_hyperparameters_are_declared_once():
     # Hyperparams' fields are the declaration; the lists of them derive from it.
     assert SWEEPABLE == tuple(field.name for field in dataclasses.fields(Hyperparams))
-    assert report.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
+    assert compose.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
     for name in SWEEPABLE:
         assert isinstance(getattr(Config(), name), float), name  # its default is Config's field
         assert set(read_by(name)) <= set(ALGORITHMS), name
@@ -56,7 +57,7 @@ def test_the_sweepable_hyperparameters_are_declared_once():
 
 
 def test_results_columns_are_the_trainers_metrics():
-    assert report.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
+    assert compose.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""Training on several devices (rpo_jax.devices), on 4 forced host CPU devices in a subprocess
+"""Training on several devices (rpo_jax.parallel.devices), on 4 forced host CPU devices in a subprocess
 (tests/device_checks.py): runs split over devices give the one-device results; data-parallel
 gradients, normaliser statistics and learning match one device; bad layouts are refused."""
 
@@ -16,7 +16,7 @@ import pytest
 from flax import serialization
 
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import RunDir
+from rpo_jax.run.directory import RunDir
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -217,7 +217,7 @@ def test_host_side_environments_split_over_devices_train_and_resume(tmp_path):
 
 
 def test_a_data_parallel_run_resumes_only_on_its_own_devices():
-    from rpo_jax.devices import Placement, check_resumable
+    from rpo_jax.parallel.devices import Placement, check_resumable
 
     with pytest.raises(UsageError, match="resumes on the same number of devices"):
         check_resumable({"placement": "envs", "devices": 4}, Placement(None, False, 1), "runs/x")
@@ -263,7 +263,7 @@ def test_data_parallel_run_learns_cartpole_as_one_device_does(tmp_path):
 
 
 def test_one_run_is_trained_unbatched_and_several_vmapped():
-    from rpo_jax.devices import map_runs
+    from rpo_jax.parallel.devices import map_runs
 
     def fn(x, y):
         return {"sum": x + y, "total": x.sum()}
@@ -326,7 +326,7 @@ def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):
 
 
 def test_resume_takes_cpu_devices_as_it_takes_the_process_flags():
-    from rpo_jax.spec import Processes
+    from rpo_jax.run.options import Processes
     from rpo_jax.train import TrainArgs, check_resume
 
     saved = {"devices": None}  # what a run records of where it trained: --cpu-devices is not part of the run
@@ -334,7 +334,7 @@ def test_resume_takes_cpu_devices_as_it_takes_the_process_flags():
 
 
 def test_cpu_devices_refused_where_jax_trains_on_a_gpu(monkeypatch):
-    from rpo_jax import devices
+    from rpo_jax.parallel import devices
 
     devices.check_cpu_split(None)  # not given: nothing to check
     devices.check_cpu_split(2)  # this CPU-only process

@@ -2,6 +2,7 @@
 commands parse, and the reports' navigation from the committed report directories."""
 
 import dataclasses
+import re
 import importlib.util
 from pathlib import Path
 
@@ -41,3 +42,21 @@ def test_the_reports_navigation_lists_every_committed_report_and_refuses_a_nav_w
     assert listed[0] == {committed[0]: f"reports/{committed[0]}/report.md"}
     with pytest.raises(ValueError, match="one 'Reports' section"):
         hooks.on_config({"nav": [{"Home": "index.md"}, {"Benchmarks": []}]})
+
+
+def test_the_architecture_page_names_every_module_of_the_package():
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    package = ROOT / "rpo_jax"
+    modules = sorted(path.relative_to(package).with_suffix("").as_posix() for path in package.rglob("*.py"))
+    named = {name for name in re.findall(r"^\| `([\w/]+)` \|", page, re.M) if not name.endswith("/")}  # not the wings' rows
+    assert [module for module in modules if module not in named] == []
+    assert [module for module in named if module not in modules] == []
+
+
+def test_the_algorithm_page_shows_the_code_at_each_line_it_names():
+    page = (ROOT / "docs" / "algorithm.md").read_text()
+    cell = r"(?:[^|\\]|\\\|)*"  # a table cell's text, with escaped bars
+    rows = re.findall(rf"^\|{cell}\| `(rpo_jax/[\w/]+\.py):(\d+)` \| `(.+)` \|$", page, re.M)
+    assert len(rows) == page.count(".py:") == 18
+    for path, line, code in rows:
+        assert (ROOT / path).read_text().splitlines()[int(line) - 1].strip() == code, f"{path}:{line}"

@@ -15,11 +15,13 @@ import jax
 import numpy as np
 import pytest
 
-from rpo_jax import envs, evaluate, experiment, load_policy, report, runner, train
-from rpo_jax import plan as plan_module
+from rpo_jax import envs, evaluate, experiment, load_policy, train
 from rpo_jax.errors import UsageError
-from rpo_jax.spec import Processes, RunSpec
-from rpo_jax.rundir import CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR
+from rpo_jax.report import compose
+from rpo_jax.run import chunks
+from rpo_jax.run import plan as plan_module
+from rpo_jax.run.directory import CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR
+from rpo_jax.run.options import Processes, RunSpec
 
 # 100 updates of 8 environments x 16 steps with the isaacgym preset, a checkpoint every 10.
 TINY = [
@@ -44,33 +46,33 @@ def job_dir(out: Path, job: str) -> Path:
 def test_experiment_writes_results_report_and_figures(uninterrupted):
     with open(uninterrupted / "results.csv", newline="") as file:
         rows = list(csv.DictReader(file))
-    assert tuple(rows[0]) == report.COLUMNS
+    assert tuple(rows[0]) == compose.COLUMNS
     # Every update is logged (100 per run), for 2 variants x 2 seeds.
     assert len(rows) == 2 * 2 * 100
     assert {(r["variant"], r["seed"]) for r in rows} == {(v, s) for v in JOBS for s in ("1", "2")}
     assert {r["experiment"] for r in rows} == {"ppo-vs-rpo"} and {r["env"] for r in rows} == {"cartpole"}
     assert {r["rpo_alpha"] for r in rows if r["variant"] == "rpo"} == {"0.5"}
     for row in rows:
-        assert all(np.isfinite(float(row[name])) for name in report.METRIC_COLUMNS)
+        assert all(np.isfinite(float(row[name])) for name in compose.METRIC_COLUMNS)
 
     text = (uninterrupted / "report.md").read_text()
     assert "| env | ppo | rpo |" in text and "| cartpole |" in text and "**" in text
     assert "## Late training" in text
-    summary = report.summarise(report.read_results(uninterrupted))
+    summary = compose.summarise(compose.read_results(uninterrupted))
     for job in JOBS:
         finals = json.loads((job_dir(uninterrupted, job) / "summary.json").read_text())["final_return_mean"]
         assert summary["cartpole", job]["return_mean"] == pytest.approx(finals)
     for name in ("cartpole-curves.png", "normalized-scores.png", "perturbed-gaussian.png"):
-        figure = uninterrupted / report.FIGURES_DIR / name
+        figure = uninterrupted / compose.FIGURES_DIR / name
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and figure.stat().st_size > 10_000
-        assert f"]({report.FIGURES_DIR}/{name})" in text
+        assert f"]({compose.FIGURES_DIR}/{name})" in text
 
 
 def test_kept_fraction_is_the_last_window_over_the_best():
     # 20 values: windows of 2. The best window is 10, the last 5.
-    assert report.kept_fraction([0, 0] + [10] * 8 + [8] * 8 + [5, 5]) == pytest.approx(0.5)
-    assert report.kept_fraction(list(range(1, 21))) == 1.0  # still rising
-    assert np.isnan(report.kept_fraction([-200.0] * 20))  # no positive window: no ratio
+    assert compose.kept_fraction([0, 0] + [10] * 8 + [8] * 8 + [5, 5]) == pytest.approx(0.5)
+    assert compose.kept_fraction(list(range(1, 21))) == 1.0  # still rising
+    assert np.isnan(compose.kept_fraction([-200.0] * 20))  # no positive window: no ratio
 
 
 def test_every_experiment_builds_valid_training_plans(tmp_path):
@@ -124,7 +126,7 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
 
     before = files()
     with pytest.raises(UsageError, match="does not match the config"):
-        runner.train(plan_module.resumed_plan(tampered))
+        chunks.train(plan_module.resumed_plan(tampered))
     assert files() == before
     argv = ["--resume", str(tampered), "--env", "brax/ant"]
     with pytest.raises(UsageError, match="made with --env cartpole, not brax/ant"):
@@ -142,20 +144,20 @@ def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
     copy = tmp_path / "again"
     shutil.copytree(uninterrupted, copy)
     (copy / "report.md").unlink()
-    assert report.main([str(copy)]) == 0
+    assert compose.main([str(copy)]) == 0
     assert (copy / "report.md").read_text().replace(str(copy), "") == (uninterrupted / "report.md").read_text().replace(
         str(uninterrupted), ""
     )
     overlay = tmp_path / "overlay"
-    assert report.main([str(uninterrupted), str(copy), "--out", str(overlay)]) == 0
+    assert compose.main([str(uninterrupted), str(copy), "--out", str(overlay)]) == 0
     assert "| env | ppo-vs-rpo: ppo | ppo-vs-rpo: rpo | again: ppo | again: rpo |" in (overlay / "report.md").read_text()
     capsys.readouterr()
-    assert report.main([str(uninterrupted), str(copy)]) == 2
-    assert report.main([str(tmp_path / "missing")]) == 2
+    assert compose.main([str(uninterrupted), str(copy)]) == 2
+    assert compose.main([str(tmp_path / "missing")]) == 2
     # Two directories of one name (runs/a/exp, runs/b/exp) would name their variants alike.
     same_name = tmp_path / "elsewhere" / uninterrupted.name
     shutil.copytree(uninterrupted, same_name)
-    assert report.main([str(uninterrupted), str(same_name), "--out", str(tmp_path / "merged")]) == 2
+    assert compose.main([str(uninterrupted), str(same_name), "--out", str(tmp_path / "merged")]) == 2
     assert not (tmp_path / "merged").exists()
     errors = capsys.readouterr().err.splitlines()
     assert errors == [
@@ -168,12 +170,12 @@ def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
 def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp_path, capsys):
     """Seeds added later in a directory of their own: --pool reports them as one set of seeds,
     the same tables as the seeds trained together; a seed in two directories is refused."""
-    rows = report.read_results(uninterrupted)
+    rows = compose.read_results(uninterrupted)
     halves = [tmp_path / "seed-1", tmp_path / "more-seeds"]
     for half, seeds in zip(halves, ({1}, {2})):
         half.mkdir()
-        report.write_results(half, [row for row in rows if row["seed"] in seeds])
-    assert report.main([*map(str, halves), "--out", str(tmp_path / "pooled"), "--pool"]) == 0
+        compose.write_results(half, [row for row in rows if row["seed"] in seeds])
+    assert compose.main([*map(str, halves), "--out", str(tmp_path / "pooled"), "--pool"]) == 0
 
     def tables(path):
         return [line for line in path.read_text().splitlines() if line.startswith("|")]
@@ -181,8 +183,8 @@ def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp
     assert tables(tmp_path / "pooled" / "report.md") == tables(uninterrupted / "report.md")
     assert "--out " + str(tmp_path / "pooled") + " --pool`" in (tmp_path / "pooled" / "report.md").read_text()
     capsys.readouterr()
-    assert report.main([str(halves[0]), str(uninterrupted), "--out", str(tmp_path / "twice"), "--pool"]) == 2
-    assert report.main([str(uninterrupted), "--pool"]) == 2
+    assert compose.main([str(halves[0]), str(uninterrupted), "--out", str(tmp_path / "twice"), "--pool"]) == 2
+    assert compose.main([str(uninterrupted), "--pool"]) == 2
     assert capsys.readouterr().err.splitlines() == [
         f"error: --pool: cartpole ppo seed 1 is in both {halves[0]} and {uninterrupted}; pooled directories hold different seeds",
         "error: --pool joins the seeds of two or more experiment directories, each with its results.csv",
@@ -192,8 +194,8 @@ def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp
 def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_path):
     one_seed = tmp_path / "one-seed"
     one_seed.mkdir()
-    report.write_results(one_seed, [row for row in report.read_results(uninterrupted) if row["seed"] == 1])
-    assert report.main([str(one_seed)]) == 0
+    compose.write_results(one_seed, [row for row in compose.read_results(uninterrupted) if row["seed"] == 1])
+    assert compose.main([str(one_seed)]) == 0
     rows = [line for line in (one_seed / "report.md").read_text().splitlines() if line.startswith("| cartpole |")]
     assert len(rows) >= 3 and not any("±" in row or "(" in row for row in rows)
     two_seeds = [line for line in (uninterrupted / "report.md").read_text().splitlines() if line.startswith("| cartpole |")]
@@ -423,7 +425,7 @@ def test_an_experiment_under_benchmarks_raw_is_kept_by_git_but_its_events_and_lo
             f"{run}/{CHECKPOINT_DIR}/252/state/manifest.ocdbt"]  # fmt: skip
     # Its own report is a copy: the committed one lies under benchmarks/reports/.
     left = [f"{run}/{TENSORBOARD_DIR}/seed_1/events", f"{run}/{LOCK_FILE}", f"benchmarks/raw/any/{LOCK_FILE}",
-            "benchmarks/raw/any/report.md", f"benchmarks/raw/any/{report.FIGURES_DIR}/a.png",
+            "benchmarks/raw/any/report.md", f"benchmarks/raw/any/{compose.FIGURES_DIR}/a.png",
             f"runs/any/{METRICS_FILE}"]  # fmt: skip
     ignored = subprocess.run(["git", "check-ignore", "--no-index", *kept, *left], cwd=root, capture_output=True, text=True)
     assert ignored.stdout.split() == left

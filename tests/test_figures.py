@@ -7,7 +7,7 @@ import pytest
 from matplotlib.collections import PolyCollection
 from scipy import stats
 
-from rpo_jax import aggregate, figures, report
+from rpo_jax.report import compose, figures, statistics
 
 UPDATES = 8
 STEPS = 250_000  # per update: ticks fall on 500k, 1M, 1.5M, 2M
@@ -20,7 +20,7 @@ def rows_of(variant: str, algo: str, finals: list[float], unfinished: frozenset 
     rows = []
     for index, final in enumerate(finals):
         for update in range(1, UPDATES + 1):
-            row = dict.fromkeys(report.COLUMNS, 0.0)
+            row = dict.fromkeys(compose.COLUMNS, 0.0)
             row.update(experiment="x", env="cartpole", variant=variant, algo=algo, dist="gaussian", seed=float(index + 1))
             finished = (index, update) not in unfinished
             row.update(update=float(update), env_steps=float(update * STEPS), episodes_finished=4.0 * finished)
@@ -39,7 +39,7 @@ def drawn(monkeypatch):
 
 
 def draw_curves(tmp_path, series_rows: dict[str, list[dict]], drawn: list) -> plt.Figure:
-    series = {label: list(report.group_runs(rows)["cartpole", label].values()) for label, rows in series_rows.items()}
+    series = {label: list(compose.group_runs(rows)["cartpole", label].values()) for label, rows in series_rows.items()}
     colours = figures.colours_for(list(series))
     panels = (("episode_return", "episode return"), ("policy_entropy", "policy entropy"))
     figures.curves(tmp_path / "curves.png", "cartpole", series, panels, colours)
@@ -48,22 +48,22 @@ def draw_curves(tmp_path, series_rows: dict[str, list[dict]], drawn: list) -> pl
 
 def test_every_figure_is_written_as_png_and_pdf_the_same_bytes_each_time(tmp_path):
     rows = rows_of("rpo", "rpo", [400.0, 450.0, 500.0, 480.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 200.0, 250.0])
-    report.write_results(tmp_path, rows)
-    text = report.build(tmp_path, [tmp_path]).read_text()
+    compose.write_results(tmp_path, rows)
+    text = compose.build(tmp_path, [tmp_path]).read_text()
     names = ("cartpole-curves", "normalized-scores", "performance-profile", "perturbed-gaussian")
     first = {}
     for name in names:
-        png, pdf = (tmp_path / report.FIGURES_DIR / f"{name}{suffix}" for suffix in (".png", ".pdf"))
+        png, pdf = (tmp_path / compose.FIGURES_DIR / f"{name}{suffix}" for suffix in (".png", ".pdf"))
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and pdf.read_bytes()[:5] == b"%PDF-", name
-        assert f"({report.FIGURES_DIR}/{name}.png)" in text
+        assert f"({compose.FIGURES_DIR}/{name}.png)" in text
         first[name] = pdf.read_bytes()
     # The PDFs beside the PNGs are the report's own: building again over them is allowed.
-    report.build(tmp_path, [tmp_path])
-    assert {name: (tmp_path / report.FIGURES_DIR / f"{name}.pdf").read_bytes() for name in names} == first
+    compose.build(tmp_path, [tmp_path])
+    assert {name: (tmp_path / compose.FIGURES_DIR / f"{name}.pdf").read_bytes() for name in names} == first
     # A file of the user's among them is not: nothing is overwritten that the report did not write.
-    (tmp_path / report.FIGURES_DIR / "notes.txt").write_text("mine")
-    with pytest.raises(report.UsageError, match="holds files the report did not write"):
-        report.build(tmp_path, [tmp_path])
+    (tmp_path / compose.FIGURES_DIR / "notes.txt").write_text("mine")
+    with pytest.raises(compose.UsageError, match="holds files the report did not write"):
+        compose.build(tmp_path, [tmp_path])
 
 
 def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(tmp_path, drawn):
@@ -72,7 +72,7 @@ def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(t
     band = next(child for child in fig.axes[0].get_children() if isinstance(child, PolyCollection))
     vertices = band.get_paths()[0].vertices
     values = np.array([[final * update / UPDATES for update in range(1, UPDATES + 1)] for final in finals])
-    low, high = aggregate.mean_intervals(values)
+    low, high = statistics.mean_intervals(values)
     for update, (lo, hi) in enumerate(zip(low, high), start=1):
         at_step = vertices[vertices[:, 0] == update * STEPS, 1]
         assert at_step.min() == pytest.approx(lo) and at_step.max() == pytest.approx(hi)
@@ -129,7 +129,7 @@ def test_step_ticks_are_plain_numbers_without_an_offset(tmp_path, drawn):
 def test_the_seeds_needed_follow_from_the_bootstrap():
     # At 3 seeds the 95% percentile interval of the mean is the seeds' range (3 ** -3 = 3.7% of
     # resamples repeat the smallest seed, more than the 2.5% tail); at 4 it lies inside it.
-    assert aggregate.interval_seeds_needed() == 4 and aggregate.interval_seeds_needed(2) == 3
+    assert statistics.interval_seeds_needed() == 4 and statistics.interval_seeds_needed(2) == 3
     rng = np.random.default_rng(0)
     for seeds, restated in ((3, True), (4, False)):
         values = np.array([1.0, 2.0, 4.0, 8.0][:seeds])
@@ -139,19 +139,19 @@ def test_the_seeds_needed_follow_from_the_bootstrap():
         else:
             assert values.min() < interval.low < interval.high < values.max()
     # Equal variants separate entirely on one task with chance 2 / C(6, 3) = 10% at 3 seeds each, 2.9% at 4.
-    assert aggregate.improvement_seeds_needed(1) == 4 and aggregate.improvement_seeds_needed(3) == 2
+    assert statistics.improvement_seeds_needed(1) == 4 and statistics.improvement_seeds_needed(3) == 2
 
 
 def test_statistics_too_few_seeds_cannot_estimate_are_shown_as_not_estimable(tmp_path):
     rows = rows_of("rpo", "rpo", [100.0, 150.0, 200.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 400.0])
-    assert np.isnan(aggregate.improvement_interval([np.array([0.1, 0.2, 0.3])], [np.array([0.6, 0.7, 0.8])])).all()
-    assert np.isnan(aggregate.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(aggregate.mean_interval(np.ones(3))).all()
-    report.write_results(tmp_path, rows)
-    text = report.build(tmp_path, [tmp_path]).read_text()
+    assert np.isnan(statistics.improvement_interval([np.array([0.1, 0.2, 0.3])], [np.array([0.6, 0.7, 0.8])])).all()
+    assert np.isnan(statistics.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(statistics.mean_interval(np.ones(3))).all()
+    compose.write_results(tmp_path, rows)
+    text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "| rpo | ppo | 0.000 n/a (needs >= 4 seeds) |" in text and "0.000 [0.000, 0.000]" not in text
     assert "| rpo | n/a (needs >= 4 runs) |" in text  # the IQM of 3 runs would trim nothing
     assert "| cartpole | 150.00 ± 50.00 n/a (needs >= 4 seeds) |" in text
     # With a fourth seed each, every statistic has its interval.
     more = rows + rows_of("rpo", "rpo", [0, 0, 0, 180.0])[3 * UPDATES :] + rows_of("ppo", "ppo", [0, 0, 0, 330.0])[3 * UPDATES :]
-    report.write_results(tmp_path, more)
-    assert "n/a (needs" not in report.build(tmp_path, [tmp_path]).read_text()
+    compose.write_results(tmp_path, more)
+    assert "n/a (needs" not in compose.build(tmp_path, [tmp_path]).read_text()

@@ -1,4 +1,4 @@
-"""Several processes joined with jax.distributed (rpo_jax.peers.join_processes), as processes on
+"""Several processes joined with jax.distributed (rpo_jax.parallel.cluster.join_processes), as processes on
 localhost with one forced host CPU device each and JAX's CPU collectives (gloo, its default on
 CPU): they train as one process does, host-side simulators and populations (--pbt) included, only
 process 0 writes the run, a resumed run continues exactly, and bad process layouts are refused in one line."""
@@ -20,9 +20,9 @@ import pytest
 from flax import serialization
 
 from rpo_jax import train
-from rpo_jax.devices import Placement, check_resumable
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import RunDir
+from rpo_jax.parallel.devices import Placement, check_resumable
+from rpo_jax.run.directory import RunDir
 
 ROOT = Path(__file__).resolve().parent.parent
 # A tiny Cartpole command: 4 updates, logged every update.

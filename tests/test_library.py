@@ -17,13 +17,15 @@ import pytest
 from point_mass import PointMass
 
 import rpo_jax
-from rpo_jax import envs, evaluate, evaluation, export, report, train
+from rpo_jax import envs, evaluate, export, train
 from rpo_jax.acting import first_episode_returns
 from rpo_jax.config import Config
 from rpo_jax.envs import registry
 from rpo_jax.errors import UsageError
-from rpo_jax.policy import load_runs
-from rpo_jax.spec import RunSpec
+from rpo_jax.report import compose
+from rpo_jax.run import eval_program
+from rpo_jax.run.options import RunSpec
+from rpo_jax.run.saved_policy import load_runs
 
 ENV = "test/point_mass"
 TINY = Config(num_envs=8, num_steps=16, num_minibatches=2, update_epochs=1, total_timesteps=8 * 16 * 20)
@@ -63,7 +65,7 @@ def test_library_example_acts_and_saves_a_run_that_every_command_reads(tmp_path,
     assert summary["sps"] is None and summary["final_return_std"] is None  # not timed; one run has no spread
     assert evaluate.main([str(out), "--eval-episodes", "3"]) == 0
     assert export.main([str(out), "--npz", str(tmp_path / "policy.npz")]) == 0
-    assert report.main([str(out)]) == 0
+    assert compose.main([str(out)]) == 0
     assert "deterministic policy: return" in capsys.readouterr().out
     assert (out / "report.md").is_file()
     # A finished run: --resume refuses it rather than training it again over the saved files.
@@ -129,10 +131,10 @@ def test_one_deterministic_number_in_training_through_load_policy_evaluate_and_o
     out, summary, _ = evaluated_run
     in_training = summary["runs"][0]["eval_return"]
     # evaluate runs training's evaluation program, by default on the episodes of the final evaluation.
-    _, means, _ = evaluation.saved_evaluation(load_runs(out), envs.make_env(ENV), EVAL_EPISODES, [3, 4], True)
+    _, means, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), EVAL_EPISODES, [3, 4], True)
     assert means.tolist() == [run["eval_return"] for run in summary["runs"]]  # bit for bit
     # The evaluation's episodes: the key the runner evaluated the last update with.
-    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), evaluation.STREAMS[0]), TINY.num_updates)
+    key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), eval_program.STREAMS[0]), TINY.num_updates)
     copies = envs.vectorize(envs.make_env(ENV), EVAL_EPISODES)
     assert export.main([str(out), "--run", "0", "--onnx", str(tmp_path / "policy.onnx")]) == 0
     session = onnxruntime.InferenceSession(str(tmp_path / "policy.onnx"))
@@ -153,7 +155,9 @@ def test_evaluate_gives_trainings_final_evaluation_bit_for_bit_on_chaotic_cartpo
     spec = RunSpec(seed=3, num_seeds=2, eval_every=10 * TINY.batch_size, eval_episodes=EVAL_EPISODES)
     summary = rpo_jax.train_runs(tmp_path / "run", "cartpole", TINY, spec)
     logged = [run["eval_return"] for run in summary["runs"]]
-    _, means, _ = evaluation.saved_evaluation(load_runs(tmp_path / "run"), envs.make_env("cartpole"), EVAL_EPISODES, [3, 4], True)
+    _, means, _ = eval_program.saved_evaluation(
+        load_runs(tmp_path / "run"), envs.make_env("cartpole"), EVAL_EPISODES, [3, 4], True
+    )
     assert means.tolist() == logged
     assert evaluate.main([str(tmp_path / "run"), "--run", "1"]) == 0
     line = capsys.readouterr().out.strip()
@@ -171,13 +175,13 @@ def test_one_spread_sample_std_with_n_in_the_summary_the_final_line_and_the_repo
     train.print_summary(summary)
     line = capsys.readouterr().out.splitlines()[0]
     assert f"final return {np.mean(finals):.2f} ± {std:.2f}" in line and "(mean ± sample std) over 2 seed(s)" in line
-    assert report.main([str(out)]) == 0
+    assert compose.main([str(out)]) == 0
     assert f"{np.mean(finals):.2f} ± {std:.2f}" in (out / "report.md").read_text()
     # evaluate's spread over episodes: the same sample std, of the episodes it ran.
     assert evaluate.main([str(out), "--episodes", "3"]) == 0
     line = capsys.readouterr().out.strip()
     deterministic = "deterministic policy" in line
-    returns, means, _ = evaluation.saved_evaluation(load_runs(out), envs.make_env(ENV), 3, [3, 4], deterministic)
+    returns, means, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), 3, [3, 4], deterministic)
     assert f"return {means[0]:.2f} ± {np.std(returns[0], ddof=1):.2f} over 3 episodes" in line, line
 
 

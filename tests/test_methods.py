@@ -11,10 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import OLDER_EMITTERS
 from point_mass import PointMass
 from scipy import special, stats
 
-from conftest import OLDER_EMITTERS
 from rpo_jax import envs, loss, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution

@@ -20,9 +20,11 @@ from point_mass import PointMass
 from test_devices import ROOT, params_of
 from test_host import SPEC, host_point_mass
 
-from rpo_jax import envs, experiment, export, pbt, policy, report, train
-from rpo_jax.rundir import PARAMS_FILE, SUMMARY_FILE, RunDir
-from rpo_jax.spec import Pbt
+from rpo_jax import envs, experiment, export, pbt, train
+from rpo_jax.report import compose
+from rpo_jax.run import saved_policy
+from rpo_jax.run.directory import PARAMS_FILE, SUMMARY_FILE, RunDir
+from rpo_jax.run.options import Pbt
 
 NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
 BATCH = NUM_ENVS * NUM_STEPS
@@ -122,10 +124,10 @@ def test_the_best_member_is_the_default_policy(finished):
     summary = RunDir(finished).read_summary()
     best = summary["best_member"]
     assert best == int(np.argmax([run["final_return"] for run in summary["runs"]]))
-    default, chosen = policy.load_run(finished)[2], policy.load_run(finished, best)[2]
+    default, chosen = saved_policy.load_run(finished)[2], saved_policy.load_run(finished, best)[2]
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(default), jax.tree.leaves(chosen), strict=True))
     other = (best + 1) % 4
-    assert not np.array_equal(jax.tree.leaves(default)[0], jax.tree.leaves(policy.load_run(finished, other)[2])[0])
+    assert not np.array_equal(jax.tree.leaves(default)[0], jax.tree.leaves(saved_policy.load_run(finished, other)[2])[0])
     exported, chosen_arrays = export.policy_arrays(finished), export.policy_arrays(finished, best)
     assert all(np.array_equal(exported[name], chosen_arrays[name]) for name in chosen_arrays)
 
@@ -133,7 +135,7 @@ def test_the_best_member_is_the_default_policy(finished):
 def test_the_report_of_a_population_run_counts_its_populations_and_draws_their_schedules(populations, tmp_path):
     out = tmp_path / "run"
     shutil.copytree(populations, out)
-    assert report.main([str(out)]) == 0  # into the run directory, beside its pbt.jsonl
+    assert compose.main([str(out)]) == 0  # into the run directory, beside its pbt.jsonl
     text = (out / "report.md").read_text()
     assert "from metrics.jsonl (8 run(s): 2 population(s) of 4)." in text and "## Populations" in text
     # Each population is one run of two series: summary.json's best member, and the members' mean.
@@ -152,14 +154,14 @@ def test_a_directory_of_plain_and_population_runs_reports_them_overlaid(populati
     shutil.copytree(populations, held / "pbt")
     flags = ["--env", "test/point_mass", *SIZE, "--total-timesteps", str(UPDATES * BATCH), "--num-seeds", "2", "--quiet"]
     assert train.main([*flags, "--out", str(held / "plain")]) == 0
-    assert report.main([str(held)]) == 0
+    assert compose.main([str(held)]) == 0
     text = (held / "report.md").read_text()
     assert text.startswith("# Report: runs of test/point_mass rpo\n")
     assert f"`python -m rpo_jax.report {held}` from metrics.jsonl (pbt: 8 run(s): 2 population(s) of 4; plain: 2 run(s))." in text
     assert all(f"| {label} | 2 | " in text for label in ("pbt: rpo (best of 4)", "pbt: rpo (mean of 4)", "plain: rpo"))
     assert (held / "figures" / "test_point_mass-pbt_rpo-schedules.png").is_file()
     # A plain run's own report is as it was before populations were reported: nothing but its numbers vary.
-    assert report.main([str(held / "plain")]) == 0
+    assert compose.main([str(held / "plain")]) == 0
     lines = (held / "plain" / "report.md").read_text().split("\n")
     assert lines[:6] == [
         "# Report: run of test/point_mass rpo", "", f"Made by `python -m rpo_jax.report {held / 'plain'}` from metrics.jsonl "
@@ -172,7 +174,7 @@ def test_a_directory_of_plain_and_population_runs_reports_them_overlaid(populati
     record = json.loads((tmp_path / "other" / "config.json").read_text())
     (tmp_path / "other" / "config.json").write_text(json.dumps({**record, "env": "cartpole"}))
     capsys.readouterr()
-    assert report.main([str(held / "plain"), str(tmp_path / "other"), "--out", str(tmp_path / "both")]) == 2
+    assert compose.main([str(held / "plain"), str(tmp_path / "other"), "--out", str(tmp_path / "both")]) == 2
     assert capsys.readouterr().err.strip() == (
         "error: the runs train test/point_mass, cartpole: a run report overlays runs of one environment; "
         "compare environments with rpo_jax.experiment"

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import scipy.stats
 
+from rpo_jax import cpu_workarounds
 from rpo_jax import loss as loss_module
+from rpo_jax import ppo
 from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import make_env
-from rpo_jax.networks import perturb_location, policy_distribution
 from rpo_jax.loss import Batch, compute_gae, ppo_loss
-from rpo_jax import ppo
+from rpo_jax.networks import perturb_location, policy_distribution
 from rpo_jax.ppo import make_networks, make_trainer
 
 # --------------------------------------------------------------------------------------------
@@ -220,12 +221,12 @@ def test_policy_log_prob_and_entropy_match_closed_form_and_scipy(log_scale_shape
 
 @pytest.mark.parametrize("n", [1, 2, 3, 64, 1000, 2048, 2049, 131072])
 def test_shuffled_indices_is_a_permutation_drawn_from_the_key(n):
-    drawn = np.asarray(ppo.shuffled_indices(jax.random.PRNGKey(0), n))
+    drawn = np.asarray(cpu_workarounds.shuffled_indices(jax.random.PRNGKey(0), n))
     assert drawn.dtype == np.int32
     np.testing.assert_array_equal(np.sort(drawn), np.arange(n))
-    np.testing.assert_array_equal(drawn, ppo.shuffled_indices(jax.random.PRNGKey(0), n))
+    np.testing.assert_array_equal(drawn, cpu_workarounds.shuffled_indices(jax.random.PRNGKey(0), n))
     if n > 3:
-        assert not np.array_equal(drawn, ppo.shuffled_indices(jax.random.PRNGKey(1), n))
+        assert not np.array_equal(drawn, cpu_workarounds.shuffled_indices(jax.random.PRNGKey(1), n))
 
 
 def one_round_of_two_random_bits(key, n):
@@ -247,7 +248,7 @@ def order_uniformity(shuffle, n, watched, draws=2400):
 
 @pytest.mark.parametrize("n, watched", [(5, 5), (2048, 4), (4097, 4)])  # 1, 2 and 3 rounds of sorting
 def test_shuffled_indices_draws_every_order_equally_often(n, watched):
-    assert order_uniformity(ppo.shuffled_indices, n, watched) > 1e-3
+    assert order_uniformity(cpu_workarounds.shuffled_indices, n, watched) > 1e-3
 
 
 def test_the_uniformity_check_rejects_a_shuffle_with_too_few_random_bits():

@@ -12,7 +12,7 @@ with every update:
 
 A change of what is computed records new references and says why here: auto-reset from a pool of
 starts drawn once per rollout (`envs.VectorEnv`); the trainer's environments starting at the first
-rollout's draw (`VectorEnv(defer_start=True)`); the epochs' shuffle drawn by `ppo.shuffled_indices`
+rollout's draw (`VectorEnv(defer_start=True)`); the epochs' shuffle drawn by `cpu_workarounds.shuffled_indices`
 in place of `jax.random.permutation` (another uniform permutation, drawn faster). A change of how it is compiled or of the
 simulator records new digests only: XLA's older fusion emitters in the suite's flags (jaxlib 0.10),
 mujoco 4.0.1. Recording: `python tests/test_reference_run.py`
@@ -34,7 +34,7 @@ import pytest
 from flax import serialization
 
 from rpo_jax import train
-from rpo_jax.rundir import METRICS_FILE, PARAMS_FILE
+from rpo_jax.run.directory import METRICS_FILE, PARAMS_FILE
 
 ROOT = Path(__file__).resolve().parent.parent
 TWO_UPDATES_FILE = ROOT / "tests" / "data" / "reference_two_updates.npz"

@@ -24,13 +24,15 @@ import numpy as np
 import pytest
 from point_mass import PointMass
 
-from rpo_jax import envs, errors, evaluate, experiment, records, report, runner, train
-from rpo_jax.checkpoint import CheckpointDamaged, Checkpointer
+from rpo_jax import envs, errors, evaluate, experiment, train
 from rpo_jax.config import Config
 from rpo_jax.envs import registry
 from rpo_jax.errors import Diverged, UsageError
-from rpo_jax.plan import RunPlan
-from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir, hold_lock, write_rows
+from rpo_jax.report import compose
+from rpo_jax.run import chunks, records
+from rpo_jax.run.checkpoint import CheckpointDamaged, Checkpointer
+from rpo_jax.run.directory import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir, hold_lock, write_rows
+from rpo_jax.run.plan import RunPlan
 
 NUM_ENVS, NUM_STEPS, UPDATES = 8, 16, 20
 TINY = Config(
@@ -149,7 +151,7 @@ def test_an_out_under_a_file_or_not_writable_is_refused(tmp_path, capsys, monkey
     assert "is a file, not a directory" in one_line(capsys)
     assert (tmp_path / "file").read_text() == "mine"
     # Root may write anywhere but on a read-only file system, where access(2) says no.
-    monkeypatch.setattr("rpo_jax.plan.os.access", lambda path, mode: False)
+    monkeypatch.setattr("rpo_jax.run.plan.os.access", lambda path, mode: False)
     assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "ro" / "run")]) == 2
     assert "is not writable (read-only file system or no permission)" in one_line(capsys)
 
@@ -218,7 +220,7 @@ def test_the_next_chunk_is_queued_before_a_chunks_outputs_are_read(tmp_path, mon
     """The host's work between chunks overlaps the next chunk's training, except after a chunk
     that a checkpoint (here every 5 updates, none after the last) reads the state of."""
     calls, queued_at_check = [0], []
-    compile_runs, first_nonfinite = runner.compile_runs, runner.first_nonfinite
+    compile_runs, first_nonfinite = chunks.compile_runs, chunks.first_nonfinite
 
     def counted(*args, **kwargs):
         compiled = compile_runs(*args, **kwargs)
@@ -233,8 +235,8 @@ def test_the_next_chunk_is_queued_before_a_chunks_outputs_are_read(tmp_path, mon
         queued_at_check.append(calls[0])
         return first_nonfinite(*args)
 
-    monkeypatch.setattr(runner, "compile_runs", counted)
-    monkeypatch.setattr(runner, "first_nonfinite", checked)
+    monkeypatch.setattr(chunks, "compile_runs", counted)
+    monkeypatch.setattr(chunks, "first_nonfinite", checked)
     flags = [*TINY_FLAGS, "--checkpoint-every", str(checkpoint_every), "--out", str(tmp_path / "run")]
     assert train.main(flags) == 0 and calls[0] == UPDATES  # one update a chunk; none run twice or past the end
     checkpointed = set(range(5, UPDATES, 5)) if checkpoint_every else set()
@@ -517,7 +519,7 @@ def test_out_of_memory_is_one_line_and_leaves_out_free(tmp_path, capsys, monkeyp
     def exhausted(*args):
         raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 98.00GiB.")
 
-    monkeypatch.setattr(runner, "compile_runs", exhausted)
+    monkeypatch.setattr(chunks, "compile_runs", exhausted)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 2
     line = one_line(capsys)
@@ -529,7 +531,7 @@ def test_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
     def full(metrics, rows):
         raise OSError(errno.ENOSPC, "No space left on device", metrics.name)
 
-    monkeypatch.setattr(runner, "write_rows", full)
+    monkeypatch.setattr(chunks, "write_rows", full)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", "0"]) == 2
     assert one_line(capsys) == f"error: No space left on device: {out / METRICS_FILE}; {out} removed (no checkpoint to resume)"
@@ -549,7 +551,7 @@ def test_a_metrics_file_replaced_under_the_run_stops_it_in_one_line_and_it_resum
             os.replace(tmp_path / "copy", path)  # the same rows, another file
         write_rows(metrics, rows)
 
-    monkeypatch.setattr(runner, "write_rows", replaced_before_the_third_write)
+    monkeypatch.setattr(chunks, "write_rows", replaced_before_the_third_write)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 2
     assert one_line(capsys) == (
@@ -601,7 +603,7 @@ def test_ctrl_c_during_compilation_exits_130_with_the_resume_hint(tmp_path, caps
     def interrupted(*args):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(runner, "compile_runs", interrupted)
+    monkeypatch.setattr(chunks, "compile_runs", interrupted)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 130
     resumes = "(resumes from the start: no checkpoint yet)"
@@ -612,20 +614,20 @@ def test_ctrl_c_during_compilation_exits_130_with_the_resume_hint(tmp_path, caps
 def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_path, capsys, monkeypatch):
     """A real SIGTERM to this process while the runs compile, as a scheduler sends it: handled as
     Ctrl-C is, and the previous SIGTERM handler is back afterwards."""
-    compile_runs = runner.compile_runs
+    compile_runs = chunks.compile_runs
 
     def terminated(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGTERM)
         return compile_runs(*args, **kwargs)
 
     before = signal.getsignal(signal.SIGTERM)
-    monkeypatch.setattr(runner, "compile_runs", terminated)
+    monkeypatch.setattr(chunks, "compile_runs", terminated)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out)]) == 143
     resumes = "(resumes from the start: no checkpoint yet)"
     assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     assert signal.getsignal(signal.SIGTERM) is before
-    monkeypatch.setattr(runner, "compile_runs", compile_runs)
+    monkeypatch.setattr(chunks, "compile_runs", compile_runs)
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
 
 
@@ -636,14 +638,14 @@ def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, 
     the resume cuts the fifth chunk's rows; while its tracking waits for the queued sixth
     (`track_chunk`), update 5; likewise in the tenth, whose scheduled checkpoint was still to be
     written, update 10. Each time the resume ends as the uninterrupted run, bit for bit."""
-    original, out, stopped = getattr(runner, hook), tmp_path / "run", []
+    original, out, stopped = getattr(chunks, hook), tmp_path / "run", []
 
     def stopped_in_the_fifth(*args, **kwargs):
         if not stopped and [row["update"] for row in RunDir(out).read_metrics()][-1:] == [at]:
             stopped.append(os.kill(os.getpid(), signal.SIGTERM))  # handled at the next bytecode, before the original
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(runner, hook, stopped_in_the_fifth)
+    monkeypatch.setattr(chunks, hook, stopped_in_the_fifth)
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS * 10)]) == 143
     resumes = f"(resumes from update {held} of {UPDATES})"
     assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
@@ -722,40 +724,40 @@ def test_evaluate_refuses_damaged_runs_in_one_line(finished, tmp_path, capsys, d
 def results_dir(tmp_path: Path) -> Path:
     directory = tmp_path / "results"
     directory.mkdir()
-    row = {name: 1.0 for name in report.COLUMNS}
+    row = {name: 1.0 for name in compose.COLUMNS}
     row.update(experiment="x", env="cartpole", variant="rpo", algo="rpo", dist="gaussian")
-    report.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
+    compose.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
     return directory
 
 
 def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys):
     directory = results_dir(tmp_path)
-    assert report.main([]) == 2
+    assert compose.main([]) == 2
     assert one_line(capsys) == "error: give DIR: one or more experiment directories with results.csv, or run directories"
-    results = directory / report.RESULTS_FILE
+    results = directory / compose.RESULTS_FILE
     good = results.read_text()
     results.write_text(good.replace(",policy_entropy", ",entropy"))
-    assert report.main([str(directory)]) == 2
+    assert compose.main([str(directory)]) == 2
     assert "column(s) policy_entropy missing" in one_line(capsys)
     lines = good.splitlines()
     results.write_text("\n".join([lines[0], lines[1].rsplit(",", 1)[0] + ",abc", *lines[2:]]) + "\n")
-    assert report.main([str(directory)]) == 2
+    assert compose.main([str(directory)]) == 2
     assert "line 2: eval_return must be a number, got 'abc'" in one_line(capsys)  # the last column
     results.write_text(good)
 
     (tmp_path / "file").write_text("mine")
-    assert report.main([str(directory), "--out", str(tmp_path / "file")]) == 2
+    assert compose.main([str(directory), "--out", str(tmp_path / "file")]) == 2
     assert "is a file; give a directory" in one_line(capsys)
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "report.md").write_text("my own notes\n")
-    assert report.main([str(directory), "--out", str(mine)]) == 2
+    assert compose.main([str(directory), "--out", str(mine)]) == 2
     assert "holds files the report did not write (report.md)" in one_line(capsys)
     assert (mine / "report.md").read_text() == "my own notes\n"
     # Its own report it rewrites, in a new directory or next to the results.
-    assert report.main([str(directory), "--out", str(tmp_path / "new")]) == 0
-    assert report.main([str(directory), "--out", str(tmp_path / "new")]) == 0
-    assert report.main([str(directory)]) == 0
+    assert compose.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert compose.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert compose.main([str(directory)]) == 0
 
 
 def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
@@ -797,7 +799,7 @@ def test_an_env_has_one_file_name_in_runs_experiments_and_figures(tmp_path, monk
     assert experiment.run_dir(tmp_path, "point_mass:PointMass", job).parent.name == "point_mass_PointMass"
     rows = [{"env": "point_mass:PointMass", "variant": "rpo", "algo": "rpo", "seed": 1.0, "update": 1.0,
              "env_steps": 64.0, "episode_return": 1.0, "episodes_finished": 1.0, "policy_entropy": 0.5}]  # fmt: skip
-    written = report.write_figures(rows, {}, tmp_path / "figures")
+    written = compose.write_figures(rows, {}, tmp_path / "figures")
     assert "point_mass_PointMass-curves.png" in {Path(path).name for path in written}, written
 
 

@@ -16,17 +16,18 @@ import numpy as np
 import pytest
 import test_reliability
 import test_reliability_processes
+from scipy import stats
 from test_reliability import TINY_FLAGS, one_line
 from test_reliability_processes import ENOSPC
 
-from scipy import stats
-
-from rpo_jax import evaluate, evaluation, export, load_policy, report, runner, tracking, train
-from rpo_jax import video as rpo_video
+from rpo_jax import evaluate, export, load_policy, train
 from rpo_jax.envs import __main__ as envs_main
 from rpo_jax.errors import UsageError
-from rpo_jax.policy import load_runs
-from rpo_jax.rundir import CONFIG_FILE
+from rpo_jax.report import compose
+from rpo_jax.run import chunks, eval_program, wandb_sink
+from rpo_jax.run import video as rpo_video
+from rpo_jax.run.directory import CONFIG_FILE
+from rpo_jax.run.saved_policy import load_runs
 
 # The point mass registered as test/point_mass, and its tiny runs, finished and unfinished.
 test_envs, finished, unfinished = test_reliability.test_envs, test_reliability.finished, test_reliability.unfinished
@@ -180,7 +181,7 @@ def test_evaluate_acts_deterministically_unless_stochastic_and_says_which(finish
         assert line.startswith(f"test/point_mass run 0 (seed 1), {mode} policy: return "), line
         printed[mode] = line.split("return ")[1].split()[0]
         # The evaluation program of training, on the episodes of the run's final evaluation (seed 1's).
-        _, means, _ = evaluation.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
+        _, means, _ = eval_program.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
         assert printed[mode] == f"{means[0]:.2f}"
         assert line.endswith("over 3 episodes, those of its own seed (it trained without --eval-every)"), line
     assert printed["deterministic"] != printed["stochastic"]
@@ -324,7 +325,7 @@ def no_wandb_credentials(tmp_path, monkeypatch):
 
 
 def test_wandb_online_without_credentials_is_refused_before_anything(tmp_path, capsys, monkeypatch, no_wandb_credentials):
-    monkeypatch.setattr(runner, "train", lambda *args, **kwargs: pytest.fail("training began"))
+    monkeypatch.setattr(chunks, "train", lambda *args, **kwargs: pytest.fail("training began"))
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--track", "wandb", "--out", str(out)]) == 2
     assert one_line(capsys) == (
@@ -349,9 +350,9 @@ def test_wandb_credentials_are_needed_online_only(monkeypatch, no_wandb_credenti
     monkeypatch.setattr(wandb.sdk.lib.wbauth.AuthApiKey, "verify", lambda self: pytest.fail("verified online"))
     if refused:
         with pytest.raises(UsageError, match="no W&B credentials"):
-            tracking.check_login(wandb, mode)
+            wandb_sink.check_login(wandb, mode)
     else:
-        tracking.check_login(wandb, mode)
+        wandb_sink.check_login(wandb, mode)
 
 
 @pytest.mark.parametrize("wandb_dir", [None, "elsewhere"])
@@ -369,7 +370,7 @@ def test_wandb_files_go_to_one_wandb_directory(tmp_path, monkeypatch, no_wandb_c
     root = tmp_path / wandb_dir / "wandb" if wandb_dir else out / "wandb"
     assert [path.relative_to(root).parts[0].startswith("offline-run-") for path in root.rglob("*.wandb")] == [True]
     assert not (root / "wandb").exists() and (out / "wandb").exists() == (wandb_dir is None)
-    assert report.main([str(out)]) == 0  # a run's report beside its wandb/
+    assert compose.main([str(out)]) == 0  # a run's report beside its wandb/
 
 
 WANDB_FLAGS = ["--track", "wandb", "--wandb-mode", "offline", "--checkpoint-every", str(8 * 16 * 5)]
@@ -450,7 +451,7 @@ def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp
     (tmp_path / "ro").mkdir()
     read_only(tmp_path / "ro", monkeypatch)
     (tmp_path / "dangling.mp4").symlink_to(tmp_path / "nowhere")
-    monkeypatch.setattr(evaluation, "saved_evaluation", lambda *args: pytest.fail("the evaluation ran"))
+    monkeypatch.setattr(eval_program, "saved_evaluation", lambda *args: pytest.fail("the evaluation ran"))
     assert evaluate.main([str(finished), "--video", video]) == 2
     assert one_line(capsys) == message.format(tmp=tmp_path)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["dangling.mp4", "ro"]

@@ -21,13 +21,16 @@ import jax
 import orbax.checkpoint as ocp
 import pytest
 from tensorboardX.event_file_writer import EventsWriter
-from test_hosts import ENVIRONMENT, TINY as CARTPOLE, command, free_port, printed
+from test_hosts import ENVIRONMENT, command, free_port, printed
+from test_hosts import TINY as CARTPOLE
 from test_hosts import finished as hosts_finished
 from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
 
-from rpo_jax import peers, runner, train
-from rpo_jax.rundir import PARAMS_FILE, RunDir
-from rpo_jax.spec import Processes, Tracking, compile_cache_dir
+from rpo_jax import train
+from rpo_jax.parallel import cluster
+from rpo_jax.run import chunks
+from rpo_jax.run.directory import PARAMS_FILE, RunDir
+from rpo_jax.run.options import Processes, Tracking, compile_cache_dir
 
 __all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
 
@@ -124,7 +127,7 @@ def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
 
 
 class Store:
-    """The coordinator's key-value store as peers.watch uses it, counting the reads of each key."""
+    """The coordinator's key-value store as cluster.watch uses it, counting the reads of each key."""
 
     def __init__(self, values: dict[str, str]) -> None:
         self.values, self.reads = values, collections.Counter()
@@ -142,40 +145,40 @@ class Store:
 def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(monkeypatch):
     # Process 1 ended normally before the watch began, process 2 while watched: each is read no
     # more once seen finished, and the watch ends then instead of polling the store for ever.
-    monkeypatch.setattr(peers, "_exit", lambda why: pytest.fail(f"a finished peer was taken for a dead one: {why}"))
-    store = Store({f"{peers.FINISHED}1": "1"})
-    watching = threading.Thread(target=peers._watch, args=(store, 0, 3, "localhost:1", 1), daemon=True)
+    monkeypatch.setattr(cluster, "_exit", lambda why: pytest.fail(f"a finished peer was taken for a dead one: {why}"))
+    store = Store({f"{cluster.FINISHED}1": "1"})
+    watching = threading.Thread(target=cluster._watch, args=(store, 0, 3, "localhost:1", 1), daemon=True)
     watching.start()
     time.sleep(0.5)  # a few rounds of watching process 2
-    store.values[f"{peers.BEAT}2"] = "1"
-    store.values[f"{peers.FINISHED}2"] = "1"
+    store.values[f"{cluster.BEAT}2"] = "1"
+    store.values[f"{cluster.FINISHED}2"] = "1"
     watching.join(timeout=5)
     assert not watching.is_alive()
-    assert store.reads[f"{peers.FINISHED}1"] == 1 and store.reads[f"{peers.BEAT}1"] == 0
-    assert store.reads[f"{peers.BEAT}2"] >= 2
+    assert store.reads[f"{cluster.FINISHED}1"] == 1 and store.reads[f"{cluster.BEAT}1"] == 0
+    assert store.reads[f"{cluster.BEAT}2"] >= 2
 
 
 def test_a_peer_that_failed_ends_this_process_after_the_timeout_unless_it_ends_first(monkeypatch):
-    # Process 1 ended on an error of its own (peers.leave): process 0 gives its own run a
+    # Process 1 ended on an error of its own (cluster.leave): process 0 gives its own run a
     # moment to end by itself, then ends in one line, its word left for a failed process 0.
-    monkeypatch.setattr(peers, "FAILED_GRACE_S", 1.0)
-    store, ended = Store({f"{peers.FAILED}1": "1"}), []
+    monkeypatch.setattr(cluster, "FAILED_GRACE_S", 1.0)
+    store, ended = Store({f"{cluster.FAILED}1": "1"}), []
     store.key_value_set = lambda key, value: store.values.__setitem__(key, value)
     # The watch goes on where _exit returns: process 1 then seen finished, it ends.
-    monkeypatch.setattr(peers, "_exit", lambda why: ended.append(why) or store.key_value_set(f"{peers.FINISHED}1", "1"))
+    monkeypatch.setattr(cluster, "_exit", lambda why: ended.append(why) or store.key_value_set(f"{cluster.FINISHED}1", "1"))
     started = time.monotonic()
-    peers._watch(store, 0, 2, "localhost:1", 1)
+    cluster._watch(store, 0, 2, "localhost:1", 1)
     assert ended == ["process 1 stopped on an error of its own (its output says which)"]
-    assert time.monotonic() - started > 1 and store.values[f"{peers.LEFT}0"] == "1"
+    assert time.monotonic() - started > 1 and store.values[f"{cluster.LEFT}0"] == "1"
     # The same, but this process's run ends by itself meanwhile: nothing said of the peer.
-    del store.values[f"{peers.FINISHED}1"]
+    del store.values[f"{cluster.FINISHED}1"]
     ended.clear()
-    monkeypatch.setattr(peers, "_stopped", threading.Event())
-    watching = threading.Thread(target=peers._watch, args=(store, 0, 2, "localhost:1", 1), daemon=True)
+    monkeypatch.setattr(cluster, "_stopped", threading.Event())
+    watching = threading.Thread(target=cluster._watch, args=(store, 0, 2, "localhost:1", 1), daemon=True)
     watching.start()
-    peers._stopped.set()
+    cluster._stopped.set()
     time.sleep(1.6)
-    store.key_value_set(f"{peers.FINISHED}1", "1")
+    store.key_value_set(f"{cluster.FINISHED}1", "1")
     watching.join(timeout=5)
     assert ended == [] and not watching.is_alive()
 
@@ -210,7 +213,7 @@ def test_processes_trace_one_computation_as_the_same_program_text(jax_locations,
     program, its source locations included: with JAX 0.12.1, two processes whose programs differed
     only there waited in their first collective forever."""
     assert lowered_from(tmp_path / "a", 0) != lowered_from(tmp_path / "b", 3)  # JAX's default: the whole stack
-    peers.trace_identically()  # as peers.join_processes does
+    cluster.trace_identically()  # as cluster.join_processes does
     assert lowered_from(tmp_path / "a", 0) == lowered_from(tmp_path / "b", 3)
     assert 'loc("model.py":2' in lowered_from(tmp_path / "a", 0)  # the operation's own line is kept
 
@@ -219,8 +222,8 @@ def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
     # Only process 0 writes JAX's cache and the others' keys miss its entries: with JAX 0.12.1 a
     # program read by process 0 and compiled by the others got run ids that never met.
     used = []
-    monkeypatch.setattr(runner, "use_compile_cache", used.append)
-    monkeypatch.setattr(runner, "train", lambda plan, sinks, progress: {})
+    monkeypatch.setattr(chunks, "use_compile_cache", used.append)
+    monkeypatch.setattr(chunks, "train", lambda plan, sinks, progress: {})
     plan = types.SimpleNamespace(config=types.SimpleNamespace(num_updates=1, batch_size=1))
     for count in (1, 2):
         monkeypatch.setattr(jax, "process_count", lambda count=count: count)
@@ -228,17 +231,18 @@ def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
     assert used == [compile_cache_dir(), None]
 
 
-# Runs one train command with one failure injected: `runner.write_rows` fails for a full disk
+# Runs one train command with one failure injected: `chunks.write_rows` fails for a full disk
 # (process 0 alone writes the rows), or test_host's point mass raises in the process named.
 BROKE = "the simulator broke"
 FAILING_RUN = f"""
 import errno, sys
 import jax
-from rpo_jax import runner, train
+from rpo_jax import train
+from rpo_jax.run import chunks
 from tests import test_host
 kind, process = sys.argv[1], int(sys.argv[2])
 
-def write_rows(file, rows, written=runner.write_rows):
+def write_rows(file, rows, written=chunks.write_rows):
     if kind == "full disk" and rows[-1]["update"] >= 3:
         raise OSError(errno.ENOSPC, "No space left on device")
     written(file, rows)
@@ -248,7 +252,7 @@ def step(sim, action, stepped=test_host.PointMassSim.step):
         raise RuntimeError({BROKE!r})
     return stepped(sim, action)
 
-runner.write_rows, test_host.PointMassSim.step = write_rows, step
+chunks.write_rows, test_host.PointMassSim.step = write_rows, step
 sys.exit(train.main(sys.argv[3:]))
 """
 
@@ -307,8 +311,8 @@ ENOSPC = OSError(errno.ENOSPC, "No space left on device")
 ORBAX_FULL = ValueError('RESOURCE_EXHAUSTED: Error writing "w/0" in OCDBT database: No space left on device')
 WRITES = {
     # name: (object, attribute, failing call, error, resumable)
-    "metrics, first row": (runner, "write_rows", 1, ENOSPC, False),
-    "metrics, after checkpoints": (runner, "write_rows", 5, ENOSPC, True),
+    "metrics, first row": (chunks, "write_rows", 1, ENOSPC, False),
+    "metrics, after checkpoints": (chunks, "write_rows", 5, ENOSPC, True),
     "first checkpoint": (ocp.CheckpointManager, "save", 1, ORBAX_FULL, False),
     "later checkpoint": (ocp.CheckpointManager, "save", 4, ORBAX_FULL, True),
     "checkpoint, plain Exception": (ocp.CheckpointManager, "save", 4, Exception("tensorstore: Failed writing"), True),

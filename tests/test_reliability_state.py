@@ -14,18 +14,17 @@ import sys
 import time
 from pathlib import Path
 
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from broken_envs import EndlessSimulators
 from point_mass import PointMass
-from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line
-from test_reliability import finished, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
+from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, TINY_FLAGS_ANY_ENV, finished, one_line, test_envs, unfinished  # noqa: F401 (fixtures: pytest finds them by these names)
 
-from rpo_jax import envs, evaluate, experiment, export, runner, train
+from rpo_jax import envs, evaluate, experiment, export, train
 from rpo_jax.envs import registry
-from rpo_jax.rundir import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir
+from rpo_jax.run import chunks
+from rpo_jax.run.directory import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
 HUGE = 1e30  # finite in float32, but its square (a variance) is not
@@ -243,8 +242,8 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
 
         monkeypatch.setattr(owner, name, slowed)
 
-    slow(runner, "evaluate_after_chunk", 2.0)
-    slow(runner.Checkpointer, "save", 1.0)
+    slow(chunks, "evaluate_after_chunk", 2.0)
+    slow(chunks.Checkpointer, "save", 1.0)
     out = tmp_path / "run"
     every = NUM_ENVS * NUM_STEPS
     flags = [*TINY_FLAGS, "--eval-every", str(10 * every), "--eval-episodes", "2", "--checkpoint-every", str(5 * every)]
@@ -260,7 +259,7 @@ def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out
 def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
     # TensorBoard's writes made slow (0.25 s after each of the 20 chunks): the sinks' time is
     # tracking_seconds, and steps/s is as fast as without it.
-    from rpo_jax.sinks import TensorBoardSink
+    from rpo_jax.run.sinks import TensorBoardSink
 
     write = TensorBoardSink.write
 
@@ -280,9 +279,9 @@ def test_a_slow_tracker_does_not_lower_steps_per_second(tmp_path, monkeypatch):
 def test_the_sinks_write_after_the_queued_chunk_has_ended(tmp_path, monkeypatch):
     # Writing while the next chunk trains would take the sinks' time out of training's, and
     # steps/s would count the chunk's steps over less than it took.
-    from rpo_jax.sinks import TensorBoardSink
+    from rpo_jax.run.sinks import TensorBoardSink
 
-    events, write, wait = [], TensorBoardSink.write, runner.jax.block_until_ready
+    events, write, wait = [], TensorBoardSink.write, chunks.jax.block_until_ready
 
     def waited(tree):
         events.append("wait" if tree is not None else "nothing to wait for")
@@ -292,7 +291,7 @@ def test_the_sinks_write_after_the_queued_chunk_has_ended(tmp_path, monkeypatch)
         events.append("write" if rows else "opened")  # `open` writes a new run's kept rows: none
         write(self, rows)
 
-    monkeypatch.setattr(runner.jax, "block_until_ready", waited)
+    monkeypatch.setattr(chunks.jax, "block_until_ready", waited)
     monkeypatch.setattr(TensorBoardSink, "write", noted_write)
     assert train.main([*TINY_FLAGS, "--out", str(tmp_path / "run")]) == 0
     before_writes = [events[i - 1] for i, event in enumerate(events) if event == "write"]

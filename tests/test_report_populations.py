@@ -7,7 +7,8 @@ import json
 import pytest
 from test_report_statistics import rows_of
 
-from rpo_jax import pbt_report, population, report
+from rpo_jax.report import compose, populations
+from rpo_jax.run import population
 
 JOBS = [
     {"name": "ppo", "algo": "ppo", "config": [], "sweep": None},
@@ -27,16 +28,16 @@ MEMBER_FINALS = [100.0 * (member + 1) + 10.0 * population for population in rang
 def population_rows() -> list[dict]:
     rows = rows_of("ppo", "ppo", {"cartpole": [250.0] * 4}) + rows_of("pbt", "rpo", {"cartpole": MEMBER_FINALS})
     for row in rows:  # not evaluated; each member's alpha halves at every update, its lr stays its own
-        del row[report.EVAL_COLUMN]
+        del row[compose.EVAL_COLUMN]
         row.update(rpo_alpha=0.5 ** row["update"], lr=1e-4 * row["seed"])
     return rows
 
 
 def experiment(directory, rows, jobs):
     directory.mkdir(parents=True)
-    report.write_results(directory, rows)
+    compose.write_results(directory, rows)
     (directory / "experiment.json").write_text(json.dumps({"experiment": "x", "jobs": jobs}))
-    return report.build(directory, [directory]).read_text()
+    return compose.build(directory, [directory]).read_text()
 
 
 @pytest.fixture(scope="module")
@@ -66,26 +67,26 @@ def test_populations_are_the_runs_as_their_best_member_and_their_mean(text):
 
 def test_the_schedules_and_the_members_returns_are_drawn(built):
     directory, text = built
-    figures = directory / report.FIGURES_DIR
+    figures = directory / compose.FIGURES_DIR
     for name in ("cartpole-pbt-schedules", "cartpole-pbt-returns"):
         assert (figures / f"{name}.png").is_file() and (figures / f"{name}.pdf").is_file()
-        assert f"![{report.FIGURES_DIR}/{name}.png]" in text
+        assert f"![{compose.FIGURES_DIR}/{name}.png]" in text
 
 
 def test_the_best_member_is_chosen_by_evaluation_where_every_member_was_evaluated():
     members = [[{"episode_return": final, "eval_return": last}] for final, last in ((300.0, 1.0), (100.0, 5.0))]
-    assert pbt_report.best_index(members) == 1
+    assert populations.best_index(members) == 1
     summarised = [{"final_return": 300.0, "eval_return": 1.0}, {"final_return": 100.0, "eval_return": 5.0}]
     assert population.best_member(summarised) == 1  # summary.json's choice, from the same numbers
     members[0][0].pop("eval_return")
-    assert pbt_report.best_index(members) == 0  # the final training return, as summary.json's
+    assert populations.best_index(members) == 0  # the final training return, as summary.json's
     summarised[0].pop("eval_return")
     assert population.best_member(summarised) == 0
 
 
 def test_unfinished_populations_are_one_line(tmp_path):
     rows = [row for row in population_rows() if row["seed"] != 12.0]
-    with pytest.raises(report.UsageError, match="cartpole pbt: 11 runs are not whole populations of 3"):
+    with pytest.raises(compose.UsageError, match="cartpole pbt: 11 runs are not whole populations of 3"):
         experiment(tmp_path / "x", rows, JOBS)
 
 
@@ -93,6 +94,6 @@ def test_an_experiment_without_populations_reports_as_before(tmp_path):
     rows = rows_of("ppo", "ppo", {"cartpole": [250.0, 200.0, 100.0, 50.0]})
     plain = tmp_path / "plain" / "x"
     plain.mkdir(parents=True)
-    report.write_results(plain, rows)
-    without = report.build(plain, [plain]).read_text()
+    compose.write_results(plain, rows)
+    without = compose.build(plain, [plain]).read_text()
     assert experiment(tmp_path / "jobs" / "x", rows, JOBS[:1]).replace(str(tmp_path / "jobs"), str(tmp_path / "plain")) == without

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from rpo_jax import aggregate, report
+from rpo_jax.report import compose, statistics
 
 RPO = {"dmc/walker-walk": [100.0, 200.0, 300.0, 400.0], "cartpole": [50.0, 100.0, 150.0, 200.0]}
 PPO = {"dmc/walker-walk": [0.0, 0.0, 100.0, 100.0], "cartpole": [0.0, 0.0, 50.0, 50.0]}
@@ -20,7 +20,7 @@ def rows_of(variant: str, algo: str, finals: dict[str, list[float]], updates: in
     for env, values in finals.items():
         for seed, value in enumerate(values, start=1):
             for update in range(1, updates + 1):
-                row = dict.fromkeys(report.COLUMNS, 0.0)
+                row = dict.fromkeys(compose.COLUMNS, 0.0)
                 row.update(experiment="x", env=env, variant=variant, algo=algo, dist="gaussian", seed=float(seed))
                 row.update(update=float(update), env_steps=float(update * 100), episode_return=value, policy_entropy=1.0)
                 rows.append(row)
@@ -30,8 +30,8 @@ def rows_of(variant: str, algo: str, finals: dict[str, list[float]], updates: in
 @pytest.fixture(scope="module")
 def table():
     rows = rows_of("rpo", "rpo", RPO) + rows_of("ppo", "ppo", PPO)
-    summary = report.summarise(rows)
-    return rows, summary, report.normalised_scores(summary)
+    summary = compose.summarise(rows)
+    return rows, summary, compose.normalised_scores(summary)
 
 
 def test_mean_sample_std_and_interval_per_environment(table):
@@ -48,7 +48,7 @@ def test_scores_use_fixed_ranges_not_the_reports_variants(table):
     _, _, scores = table
     np.testing.assert_allclose(scores["dmc/walker-walk", "rpo"], [0.1, 0.2, 0.3, 0.4])  # (r - 0) / 1000
     np.testing.assert_allclose(scores["cartpole", "rpo"], [0.1, 0.2, 0.3, 0.4])  # (r - 0) / 500
-    alone = report.normalised_scores(report.summarise(rows_of("rpo", "rpo", RPO)))
+    alone = compose.normalised_scores(compose.summarise(rows_of("rpo", "rpo", RPO)))
     np.testing.assert_array_equal(alone["cartpole", "rpo"], scores["cartpole", "rpo"])
 
 
@@ -56,29 +56,29 @@ def test_interquartile_mean_and_probability_of_improvement(table):
     _, _, scores = table
     tasks = [scores["dmc/walker-walk", "rpo"], scores["cartpole", "rpo"]]
     # 8 pooled scores 0.1 0.1 0.2 0.2 0.3 0.3 0.4 0.4; cutting 2 from each end leaves a mean of 0.25.
-    assert aggregate.iqm(*tasks) == pytest.approx(0.25)
-    low, high = aggregate.iqm_interval(tasks)
+    assert statistics.iqm(*tasks) == pytest.approx(0.25)
+    low, high = statistics.iqm_interval(tasks)
     assert 0.1 <= low <= 0.25 <= high <= 0.4
     baseline = [scores["dmc/walker-walk", "ppo"], scores["cartpole", "ppo"]]
     # Per task, of 16 pairs RPO wins 14 and ties 2 (0.1 against 0.1): (14 + 1) / 16.
-    assert aggregate.probability_of_improvement(tasks, baseline) == pytest.approx(15 / 16)
-    assert aggregate.probability_of_improvement(baseline, tasks) == pytest.approx(1 / 16)
-    low, high = aggregate.improvement_interval(tasks, baseline)
+    assert statistics.probability_of_improvement(tasks, baseline) == pytest.approx(15 / 16)
+    assert statistics.probability_of_improvement(baseline, tasks) == pytest.approx(1 / 16)
+    low, high = statistics.improvement_interval(tasks, baseline)
     assert 0.5 < low <= 15 / 16 <= high <= 1.0
 
 
 def test_one_seed_has_no_interval():
-    assert np.isnan(aggregate.mean_interval(np.array([3.0]))).all()
+    assert np.isnan(statistics.mean_interval(np.array([3.0]))).all()
 
 
 def test_the_report_carries_every_statistic(table, tmp_path):
     rows, _, _ = table
-    report.write_results(tmp_path, rows)
-    text = report.build(tmp_path, [tmp_path]).read_text()
+    compose.write_results(tmp_path, rows)
+    text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "| rpo | 0.250 [" in text and "| 2 | 8 |" in text  # IQM, environments and runs
     assert "| rpo | ppo | 0.938 [" in text  # probability of improvement
     assert "250.00 ± 129.10 [" in text
-    assert (tmp_path / report.FIGURES_DIR / "performance-profile.png").is_file()
+    assert (tmp_path / compose.FIGURES_DIR / "performance-profile.png").is_file()
 
 
 REFERENCE_CSV = """env,algo,mean,std,seeds,budget,source
@@ -91,9 +91,9 @@ def built_with_reference(table, tmp_path: Path, reference_csv: str, out: Path | 
     """The report of `table`'s rows in tmp_path/exp, written to `out` (default: that directory),
     beside the published figures of `reference_csv` in tmp_path/ref.csv."""
     (tmp_path / "exp").mkdir()
-    report.write_results(tmp_path / "exp", table[0])
+    compose.write_results(tmp_path / "exp", table[0])
     (tmp_path / "ref.csv").write_text(reference_csv)
-    return report.build(out or tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv")
+    return compose.build(out or tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv")
 
 
 def test_the_reference_sits_beside_ours_with_whether_our_interval_holds_it(table, tmp_path):
@@ -112,8 +112,8 @@ def test_the_made_by_line_is_the_command_that_wrote_the_report(table, tmp_path):
     reference = ["--reference", str(tmp_path / "ref.csv")]
     assert named == ["python", "-m", "rpo_jax.report", str(tmp_path / "exp"), "--out", str(out), *reference]
     (out / "report.md").unlink()
-    assert report.main(named[3:]) == 0 and (out / "report.md").read_text() == text
-    alone = report.build(tmp_path / "exp", [tmp_path / "exp"]).read_text()
+    assert compose.main(named[3:]) == 0 and (out / "report.md").read_text() == text
+    alone = compose.build(tmp_path / "exp", [tmp_path / "exp"]).read_text()
     assert f"Made by `python -m rpo_jax.report {tmp_path / 'exp'}` from" in alone
 
 
@@ -141,11 +141,11 @@ def test_welchs_test_counts_the_references_spread_beside_ours(table, tmp_path):
 
 def test_holms_adjustment_steps_down_and_never_reorders():
     # Sorted 0.005, 0.01, 0.03, 0.04 of m = 4: x4 0.02, x3 0.03, x2 0.06, x1 0.04 raised to 0.06.
-    adjusted = report.reference.holm([0.01, 0.04, None, 0.03, 0.005, float("nan")])
+    adjusted = compose.reference.holm([0.01, 0.04, None, 0.03, 0.005, float("nan")])
     assert adjusted[:2] == pytest.approx([0.03, 0.06]) and adjusted[2] is None
     assert adjusted[3:5] == pytest.approx([0.06, 0.02]) and np.isnan(adjusted[5])
-    assert report.reference.holm([0.4, 0.3]) == pytest.approx([0.6, 0.6])  # 0.3 x 2 = 0.6 caps 0.4
-    assert report.reference.holm([0.9, 0.8, 0.7]) == pytest.approx([1.0, 1.0, 1.0])
+    assert compose.reference.holm([0.4, 0.3]) == pytest.approx([0.6, 0.6])  # 0.3 x 2 = 0.6 caps 0.4
+    assert compose.reference.holm([0.9, 0.8, 0.7]) == pytest.approx([1.0, 1.0, 1.0])
 
 
 @pytest.mark.parametrize(
@@ -157,5 +157,5 @@ def test_holms_adjustment_steps_down_and_never_reorders():
 )
 def test_a_bad_reference_table_is_one_line(tmp_path, contents, named):
     (tmp_path / "ref.csv").write_text(contents)
-    with pytest.raises(report.UsageError, match=named.replace("(", r"\(").replace(")", r"\)")):
-        report.reference.read(tmp_path / "ref.csv")
+    with pytest.raises(compose.UsageError, match=named.replace("(", r"\(").replace(")", r"\)")):
+        compose.reference.read(tmp_path / "ref.csv")

@@ -13,9 +13,10 @@ from point_mass import PointMass
 from test_host import SPEC as HOST_SPEC
 from test_host import host_point_mass
 
-from rpo_jax import envs, evaluate, export, load_policy, plan, runner, spec, train
+from rpo_jax import envs, evaluate, export, load_policy, train
 from rpo_jax.experiment import Job, progress_line
-from rpo_jax.tracking import wandb_records
+from rpo_jax.run import chunks, options, plan
+from rpo_jax.run.wandb_sink import wandb_records
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
 ENTRY_POINTS = ("train", "evaluate", "experiment", "report", "envs", "export")
@@ -157,10 +158,10 @@ def test_evaluate_keeps_its_program_in_the_compile_cache_unless_told_not_to(poin
     run_dir = tmp_path / "run"
     assert train.main(["--env", "point_mass", *TINY, "--total-timesteps", "256", "--out", str(run_dir)]) == 0
     chosen = []
-    monkeypatch.setattr(runner, "use_compile_cache", chosen.append)
+    monkeypatch.setattr(chunks, "use_compile_cache", chosen.append)
     assert evaluate.main([str(run_dir)]) == 0
     assert evaluate.main([str(run_dir), "--no-compile-cache"]) == 0
-    assert chosen == [spec.compile_cache_dir(), None]
+    assert chosen == [options.compile_cache_dir(), None]
 
 
 def test_exports_act_as_load_policy(tmp_path):
@@ -211,9 +212,9 @@ def test_default_checkpoints_only_for_long_runs():
 
 def test_compile_cache_lives_under_the_user_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    assert spec.compile_cache_dir() == tmp_path / "rpo_jax" / "jax"
+    assert options.compile_cache_dir() == tmp_path / "rpo_jax" / "jax"
     monkeypatch.delenv("XDG_CACHE_HOME")
-    assert spec.compile_cache_dir() == Path.home() / ".cache" / "rpo_jax" / "jax"
+    assert options.compile_cache_dir() == Path.home() / ".cache" / "rpo_jax" / "jax"
 
 
 def test_experiment_progress_line_names_each_variant():

@@ -16,8 +16,10 @@ from test_host import SPEC as HOST_SPEC
 from test_host import PointMassSim, host_point_mass
 from test_tools import read_wandb_run
 
-from rpo_jax import envs, report, runner, train, video
+from rpo_jax import envs, train
 from rpo_jax.envs.host import HostEnv
+from rpo_jax.report import compose
+from rpo_jax.run import chunks, video
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
 
@@ -168,7 +170,7 @@ def test_capture_video_draws_each_run_into_the_run_directory_tensorboard_and_wan
         assert {step["video/episodes/_type"] for step in logged} == {"video-file"}
         assert len(list(path.parent.rglob("files/media/videos/**/*.mp4"))) == 2
     # The report writes into the run directory beside its videos (a run's own files, not the user's).
-    assert report.main([str(out)]) == 0 and (out / "report.md").is_file()
+    assert compose.main([str(out)]) == 0 and (out / "report.md").is_file()
 
 
 def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
@@ -216,7 +218,7 @@ def test_video_time_is_kept_out_of_training_time_and_steps_per_second(drawn_envs
     ],
 )  # fmt: skip
 def test_videos_that_cannot_be_made_are_refused_before_any_work(drawn_envs, tmp_path, capsys, monkeypatch, flags, message):
-    monkeypatch.setattr(runner, "compile_runs", lambda *args: pytest.fail("training began"))
+    monkeypatch.setattr(chunks, "compile_runs", lambda *args: pytest.fail("training began"))
     started = time.perf_counter()
     # Without --quiet: the refusal comes before the progress display's first line.
     assert train.main([*TINY[:-1], *flags, "--out", str(tmp_path / "out")]) == 2

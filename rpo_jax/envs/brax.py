@@ -54,7 +54,8 @@ class BraxEnv(DoneIsTermination):
     """One of Brax's own environments (`brax/<name>`), with Brax's usual 1000-step episodes."""
 
     def __init__(self, name: str, backend: str | None = None) -> None:
-        from brax import envs as brax_envs, fluid
+        from brax import envs as brax_envs
+        from brax import fluid
 
         from rpo_jax.envs.mjx_support import models_on_this_process
 

@@ -43,7 +43,7 @@ def put_model(mj_model: mujoco.MjModel) -> tuple[Any, Any]:
     """The MJX model of `mj_model` and its data template, on this process's first device.
 
     MJX's default, jax.devices()[0], is process 0's device in a run of several processes
-    (rpo_jax.devices), whose model the other processes cannot read."""
+    (rpo_jax.parallel.devices), whose model the other processes cannot read."""
     device = jax.local_devices()[0]
     return mjx.put_model(mj_model, device=device), mjx.make_data(mj_model, device=device)
 

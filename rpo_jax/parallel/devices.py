@@ -34,7 +34,7 @@ the pools of its own devices' shares (a pool's handle means something only there
 `--shared-pools` the runs of one device's program (of one group's, with `--split-epochs`) share
 one pool instead; the groups' runs are then also started apart, group by group.
 
-Several processes (`peers.join_processes`, one per machine or per GPU) train as one: the mesh holds
+Several processes (`cluster.join_processes`, one per machine or per GPU) train as one: the mesh holds
 every process's devices, each process runs the same program, and the results come back to
 every host whole (`Placement.real_runs`). Runs are then padded to fill every device, since
 each process must hold a share. Process 0 alone writes the run's files (`is_primary`).
@@ -50,9 +50,10 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from rpo_jax import diagnostics, envs, peers, ppo
+from rpo_jax import diagnostics, envs, ppo
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
+from rpo_jax.parallel import cluster
 
 AXIS = "devices"
 T = TypeVar("T")
@@ -104,8 +105,8 @@ class Placement:
         if self.shared_pools:  # on an envs.HostEnv: the plan refused the flag for any other
             env = env.sharing_pools()
         if self.kind == "envs":
-            return ppo.build_trainer(config, env, axis_name=AXIS, env_shards=self.count)
-        return ppo.build_trainer(config, env)
+            return ppo.make_trainer(config, env, axis_name=AXIS, env_shards=self.count)
+        return ppo.make_trainer(config, env)
 
     def _sharding(self) -> NamedSharding:
         return NamedSharding(self._devices, PartitionSpec(AXIS))
@@ -168,20 +169,19 @@ class Placement:
         """One update of `size` runs whose state lies on the first device: state -> (state, output),
         the epochs padded to a multiple of the other devices and split over them as runs are."""
 
-        def collect(state: ppo.TrainState) -> tuple[ppo.Collected, Any]:
-            collected, traj = ppo.collect(trainer, state)
-            return collected, diagnostics.count_rollout(traj)
+        def collect(state: ppo.TrainState) -> ppo.Collected:
+            return ppo.collect(trainer, state)
 
-        def learn(collected: ppo.Collected, counts: Any) -> tuple[ppo.TrainState, Any]:
+        def learn(collected: ppo.Collected) -> tuple[ppo.TrainState, Any]:
             state, metrics = ppo.learn(trainer, collected)
-            return state, (metrics, diagnostics.Diagnostics.of(counts, state, trainer.config))
+            return state, (metrics, diagnostics.Diagnostics.of(collected.rollout_counts, state, trainer.config))
 
         group_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct((size, *leaf.shape[1:]), leaf.dtype), abstract_state)
         collect_program = jax.jit(map_runs(collect)).lower(group_state).compile()
         padded = round_up(size, self.epochs_mesh.size)
         pad = jax.jit(lambda tree: pad_runs(tree, padded))
         learn_abstract = self._placed_abstract(jax.eval_shape(pad, jax.eval_shape(map_runs(collect), group_state)))
-        learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(*learn_abstract).compile()
+        learn_program = self._spread(map_runs(learn), PartitionSpec(AXIS)).lower(learn_abstract).compile()
         real = jax.jit(lambda tree: jax.tree.map(lambda leaf: leaf[:size], tree))
         if padded == size:  # no copies to add or drop: no program for either
             pad = real = lambda tree: tree
@@ -190,7 +190,7 @@ class Placement:
         def update(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
             # Nothing after the epochs runs on the first device but the transfer back: a program
             # there would wait for them, and hold up the other group's rollouts behind it.
-            learnt = learn_program(*jax.device_put(pad(collect_program(state)), self._sharding()))
+            learnt = learn_program(jax.device_put(pad(collect_program(state)), self._sharding()))
             return jax.device_put(real(learnt), first)
 
         return update
@@ -330,7 +330,7 @@ def make_placement(
         count = min(count, num_runs if not split_epochs else run_groups(num_runs)[0] + 1)
     if count == 1 and processes == 1:
         return Placement(None, False, num_runs, shared_pools=shared_pools)
-    chosen = [device for process in range(processes) for device in peers.devices_of(process)[:count]]
+    chosen = [device for process in range(processes) for device in cluster.devices_of(process)[:count]]
     if split_epochs:
         return Placement(None, False, num_runs, epochs_mesh=Mesh(np.asarray(chosen[1:]), (AXIS,)), shared_pools=shared_pools)
     return Placement(Mesh(np.asarray(chosen), (AXIS,)), shard_envs, num_runs, processes, shared_pools=shared_pools)
@@ -373,7 +373,7 @@ def refused_together(make: Callable[[], T]) -> T:
         if error is None and refused.any():
             error = UsageError(f"process {int(np.argmax(refused))} refused the run (its error says why)")
         if error is not None:
-            peers.stop_watching()  # all stop now: whichever exits first is no lost peer
+            cluster.stop_watching()  # all stop now: whichever exits first is no lost peer
     if error is not None:
         raise error
     return made

@@ -1,6 +1,6 @@
 """The report's figures, drawn with matplotlib without a display, each as PNG and as PDF beside
 it (for a paper). Every chart shows its spread: 95% bootstrap confidence intervals of the mean over
-seeds as bands on curves and as error bars on bars (`rpo_jax.aggregate`), the seeds themselves
+seeds as bands on curves and as error bars on bars (`rpo_jax.report.statistics`), the seeds themselves
 where they are too few for an interval, and the number of runs behind each curve or bar."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from rpo_jax import aggregate
+from rpo_jax.report import statistics
 
 DPI = 110
 SUFFIXES = (".png", ".pdf")  # what `_save` writes of each figure
@@ -97,7 +97,7 @@ def _draw_series(axis: Any, runs: list[list[dict]], metric: str, colour: Any, la
     """The mean over runs with its bootstrap band, or with the single runs where too few."""
     steps, values = finished_points(runs, metric)
     axis.plot(steps, values.mean(axis=0), color=colour, label=f"{label} (n={len(runs)})", linewidth=1.5)
-    low, high = aggregate.mean_intervals(values)
+    low, high = statistics.mean_intervals(values)
     if len(low) and not math.isnan(low[0]):
         axis.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
     elif len(values) > 1:  # one seed is its own mean
@@ -129,7 +129,7 @@ def curves(
     axes[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(title)
     caption = CURVES_CAPTION.format(
-        confidence=aggregate.CONFIDENCE, resamples=aggregate.RESAMPLES, needed=aggregate.interval_seeds_needed()
+        confidence=statistics.CONFIDENCE, resamples=statistics.RESAMPLES, needed=statistics.interval_seeds_needed()
     )
     fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=7, wrap=True)
     return _save(fig, path, rect=(0, 0.06, 1, 1))

@@ -18,8 +18,8 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
 from rpo_jax import pbt, ppo
-from rpo_jax.devices import Placement, is_primary
-from rpo_jax.plan import RunPlan
+from rpo_jax.parallel.devices import Placement, is_primary
+from rpo_jax.run.plan import RunPlan
 from rpo_jax.scores import best_run
 
 # (placed state, scores [R], update) -> (placed state, donors [R])

@@ -1,5 +1,6 @@
 """Where a run's progress and logged rows go besides metrics.jsonl: TensorBoard and the terminal
-(W&B: `rpo_jax.tracking`). They are passed to `runner.train` by the command line (see `runner.Sink` and `runner.ProgressFn`)."""
+(W&B: `rpo_jax.run.wandb_sink`). The command line passes them to `chunks.train` (see `chunks.Sink` and
+`chunks.ProgressFn`)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from rpo_jax.ppo import Metrics
-from rpo_jax.rundir import RunDir
-from rpo_jax.video import ffmpeg_started
+from rpo_jax.run.directory import RunDir
+from rpo_jax.run.video import ffmpeg_started
 
 # The trainer's metrics less the step counter, which is TensorBoard's x axis.
 TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name != "env_steps")

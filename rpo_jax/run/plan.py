@@ -5,7 +5,7 @@ and read back from config.json to resume.
 
 Building a plan checks everything that the flags can get wrong, validates the config once and
 parses the sweeps once: the plan carries the grid of sweep points and the placement of its runs
-on the devices, which `rpo_jax.runner` trains. config.json records the plan (`PLAN_FIELDS`);
+on the devices, which `rpo_jax.run.chunks` trains. config.json records the plan (`PLAN_FIELDS`);
 `resumed_plan` reads it back, checked as the flags are.
 """
 
@@ -22,11 +22,12 @@ from typing import Any, Sequence
 
 from rpo_jax import envs, pbt
 from rpo_jax.config import SWEEPABLE, Config, check_applies
-from rpo_jax.devices import Placement, is_primary, make_placement
 from rpo_jax.envs import registry
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import RunDir
-from rpo_jax.spec import EXPLORE_RULES, PLACEMENT_FIELDS, Pbt, Processes, RunSpec, check_seeds
+from rpo_jax.hyperparams import EXPLORE_RULES
+from rpo_jax.parallel.devices import Placement, is_primary, make_placement
+from rpo_jax.run.directory import RunDir
+from rpo_jax.run.options import PLACEMENT_FIELDS, Pbt, Processes, RunSpec, check_seeds
 
 # Checkpoints by default: 10 per run, for runs of at least CHECKPOINT_MIN_RUN_STEPS environment
 # steps per run, and none for shorter ones. An orbax save of a small state takes about 0.23 s on a
@@ -70,11 +71,11 @@ class RunPlan:
     checkpoint_every: int  # env steps per run between checkpoints; 0: none
     eval_every: int = RunSpec.eval_every  # env steps per run between evaluations of the deterministic policy; 0: none
     eval_episodes: int = RunSpec.eval_episodes
-    devices: int | None = Processes.devices  # local devices to train on (see rpo_jax.devices); None: all
+    devices: int | None = Processes.devices  # local devices to train on (see rpo_jax.parallel.devices); None: all
     shard_envs: bool = Processes.shard_envs  # split each run's environments over the devices instead of the runs
-    split_epochs: bool = Processes.split_epochs  # split only the runs' epochs over the devices (rpo_jax.devices)
+    split_epochs: bool = Processes.split_epochs  # split only the runs' epochs over the devices (rpo_jax.parallel.devices)
     shared_pools: bool = Processes.shared_pools  # the runs stepped together share one pool of host simulators
-    capture_video: bool = RunSpec.capture_video  # videos of the deterministic policy during training (rpo_jax.video)
+    capture_video: bool = RunSpec.capture_video  # videos of the deterministic policy during training (rpo_jax.run.video)
     capture_video_every: int | None = RunSpec.capture_video_every  # env steps per run between videos; None: VIDEOS_PER_RUN
     capture_video_episodes: int = RunSpec.capture_video_episodes
     pbt: dict[str, Any] | None = None  # population-based training: the `Pbt` flags, pbt_every in env steps; None: off

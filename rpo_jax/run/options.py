@@ -2,7 +2,7 @@
 where and in how many processes it trains (`Processes`) and how it reports (`Tracking`), beside
 the algorithm's `Config`. `rpo_jax.train` and `rpo_jax.experiment` nest these dataclasses in their
 arguments, so that what they share has the same flags (tyro reads them, without prefixes), and
-`rpo_jax.plan` builds a run from them. The commands that read a trained run (evaluate, export)
+`rpo_jax.run.plan` builds a run from them. The commands that read a trained run (evaluate, export)
 nest `TrainedRun`; every command parses its flags with `parse`.
 """
 
@@ -14,14 +14,13 @@ import io
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal, Sequence, TypeVar
+from typing import Annotated, Literal, Sequence, TypeVar
 
 import tyro
 
 from rpo_jax.config import PRESETS
 from rpo_jax.errors import UsageError
-from rpo_jax.hyperparams import LOG_SCALE, SWEEPABLE
-from rpo_jax.rundir import PARAMS_FILE, RunDir
+from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, SWEEPABLE
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 # Flags declared once for several commands: --eval-episodes (RunSpec's, and evaluate's) and the
@@ -30,10 +29,6 @@ EvalEpisodes = Annotated[int, tyro.conf.arg(help="episodes per evaluation, on fr
 RunDirectory = Annotated[Path, tyro.conf.arg(metavar="RUN_DIR", help="a directory written by rpo_jax.train")]
 # --sweep's help names the hyperparameters from their one declaration (`hyperparams.Hyperparams`).
 SWEEP_HELP = f"NAME=V1,V2,...: every value x every other sweep x seeds in one program; NAME in {', '.join(SWEEPABLE)}"
-# Population-based training's explore rules, and the factors that "perturb" multiplies by, each
-# as likely (the paper's 0.8 and 1.2; 1.25 undoes 0.8, so that a value perturbed both ways comes back).
-EXPLORE_RULES = ("perturb", "resample")
-PERTURB_FACTORS = (0.8, 1.25)
 PBT_FIELDS_HELP = (
     "NAME=LOW:HIGH,... the hyperparameters explored and their ranges; each member starts from values drawn within "
     f"them (log-uniform for {' and '.join(LOG_SCALE)}); NAME in {', '.join(SWEEPABLE)}"
@@ -83,7 +78,7 @@ class Pbt:
     pbt_every: int | None = None
     """env steps per member between exploit/explore steps (in whole chunks of updates); None: a tenth of the run"""
     pbt_fields: Annotated[str, tyro.conf.arg(help=PBT_FIELDS_HELP)] = "rpo_alpha=0.001:1.0,lr=1e-5:1e-3"
-    pbt_quantile: float = 0.25
+    pbt_quantile: float = PBT_QUANTILE
     """the bottom fraction of members (by recent training return, or the last evaluation's with --eval-every) that copy
     members of the top fraction, in (0, 0.5]"""
     pbt_explore: Annotated[Literal[EXPLORE_RULES], tyro.conf.arg(help=PBT_EXPLORE_HELP)] = "perturb"  # type: ignore[valid-type]
@@ -150,20 +145,6 @@ class TrainedRun:
     run_dir: tyro.conf.Positional[RunDirectory]
     run: int | None = None
     """which of the directory's runs (index in config.json); default: the first, or a population's best member"""
-
-    def record(self) -> dict[str, Any]:
-        """config.json's record; refuses a directory without trained parameters, and a --run it lacks."""
-        run_dir = RunDir(self.run_dir)
-        if not run_dir.has_params():
-            raise UsageError(f"{self.run_dir} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
-        saved = run_dir.read_config()
-        if not 0 <= self.index() < len(saved["runs"]):
-            raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {self.run}")
-        return saved
-
-    def index(self) -> int:
-        """The run chosen: --run, or by default the first, or a population's best member."""
-        return RunDir(self.run_dir).default_run() if self.run is None else self.run
 
 
 # The flags that choose where and how the runs of one command train; config.json records them.

@@ -20,16 +20,16 @@ from typing import Sequence
 
 import numpy as np
 
-from rpo_jax import figures
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import LOG_SCALE, explored_fields
-from rpo_jax.rundir import EXPERIMENT_FILE, env_directory
+from rpo_jax.report import figures
+from rpo_jax.run.directory import EXPERIMENT_FILE, env_directory
 from rpo_jax.scores import best_run, tail_mean
 
 # A row's columns that say where it lies rather than what it measured: the mean member keeps them.
 PLACE_COLUMNS = ("seed", "update", "env_steps")
 
-# (env, variant) -> seed -> that run's rows in update order, as `rpo_jax.report.group_runs` gives them.
+# (env, variant) -> seed -> that run's rows in update order, as `rpo_jax.report.compose.group_runs` gives them.
 Runs = dict[tuple[str, str], dict[float, list[dict]]]
 
 
@@ -86,7 +86,7 @@ def split_populations(runs: dict[float, list[dict]], size: int, name: str) -> li
 
 def best_index(members: Sequence[list[dict]]) -> int:
     """The population's best member from its logged rows (`scores.best_run`), as summary.json
-    chooses it from the summarised runs (`rpo_jax.population.best_member`)."""
+    chooses it from the summarised runs (`rpo_jax.run.population.best_member`)."""
     evaluations = [[row["eval_return"] for row in run if "eval_return" in row] for run in members]
     finals = [tail_mean([row["episode_return"] for row in run]) for run in members]
     return best_run([run[-1] if run else None for run in evaluations], finals)

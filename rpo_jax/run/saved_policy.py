@@ -17,7 +17,7 @@ from rpo_jax import envs, ppo
 from rpo_jax.acting import ActFn, Policy
 from rpo_jax.config import ACTING_FIELDS, Config
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import CONFIG_FILE, PARAMS_FILE, RunDir
+from rpo_jax.run.directory import CONFIG_FILE, PARAMS_FILE, RunDir
 
 
 def load_policy(run_dir: str | Path, run: int | None = None) -> ActFn:

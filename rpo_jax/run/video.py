@@ -32,8 +32,8 @@ import os
 import subprocess
 import tempfile
 import warnings
-from pathlib import Path
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import jax
@@ -43,8 +43,8 @@ import numpy as np
 from rpo_jax import envs
 from rpo_jax.acting import ActFn
 from rpo_jax.errors import UsageError
-from rpo_jax.files import written_whole
-from rpo_jax.rundir import VIDEOS_DIR
+from rpo_jax.run.directory import VIDEOS_DIR
+from rpo_jax.run.files import written_whole
 
 WIDTH, HEIGHT = 480, 360
 

@@ -17,18 +17,19 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import ppo, runner
+from rpo_jax import ppo
 from rpo_jax.config import Config
-from rpo_jax.plan import RunPlan, config_record, describe_runs, new_plan
-from rpo_jax.policy import params_bytes
-from rpo_jax.records import logged_rows, record_returns, summarise
-from rpo_jax.rundir import hold_lock, write_rows
-from rpo_jax.spec import Processes, RunSpec
+from rpo_jax.run import chunks
+from rpo_jax.run.directory import hold_lock, write_rows
+from rpo_jax.run.options import Processes, RunSpec
+from rpo_jax.run.plan import RunPlan, config_record, describe_runs, new_plan
+from rpo_jax.run.records import logged_rows, record_returns, summarise
+from rpo_jax.run.saved_policy import params_bytes
 
 
 def train_runs(
     out: str | Path, env: str, config: Config, spec: RunSpec | None = None,
-    progress_fn: runner.ProgressFn | None = None, sinks: Sequence[runner.Sink] = (),
+    progress_fn: chunks.ProgressFn | None = None, sinks: Sequence[chunks.Sink] = (),
 ) -> dict[str, Any]:  # fmt: skip
     """Trains the runs of `spec` (seeds, sweeps, logging, checkpoints, evaluation; its `out` is
     replaced by `out`, a new or empty directory) as `python -m rpo_jax.train` does, and returns
@@ -36,7 +37,7 @@ def train_runs(
     steps done per run and a dict of floats (`records.progress_metrics`: the trainer's metrics,
     `eval_return` after an evaluation, `sps`), as Brax's progress_fn; `sinks` get the logged rows."""
     plan = new_plan(env, config, dataclasses.replace(spec or RunSpec(), out=Path(out)))
-    return runner.train(plan, sinks, progress_fn)
+    return chunks.train(plan, sinks, progress_fn)
 
 
 def save_run(

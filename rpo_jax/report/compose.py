@@ -9,12 +9,12 @@ Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes 
 figures/ (PNG, and PDF beside each): per environment and variant the final return with its sample std and a 95%
 bootstrap confidence interval over seeds; across environments the interquartile mean of
 normalised scores and the probability that RPO improves on each baseline, with stratified
-bootstrap intervals (`rpo_jax.aggregate`); learning curves, interval bars, a performance
+bootstrap intervals (`rpo_jax.report.statistics`); learning curves, interval bars, a performance
 profile and the paper's Figure 1 (left). With several directories, variants are prefixed by
 their directory's name so that the experiments overlay. Given a training run's directory
 (metrics.jsonl), it draws that run's curves: return, entropy, losses and learning rate; a
 population's (--pbt) as its best member and its members' mean, with its hyperparameter schedules
-(`rpo_jax.pbt_report`). Several run directories of one environment, or a directory holding them,
+(`rpo_jax.report.populations`). Several run directories of one environment, or a directory holding them,
 overlay as experiments do.
 """
 
@@ -33,16 +33,16 @@ from typing import Annotated, Iterable, Sequence
 import numpy as np
 import tyro
 
-from rpo_jax import aggregate, figures, pbt_report, reference, tables
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.files import write_text
 from rpo_jax.hyperparams import SWEEPABLE
-from rpo_jax.rundir import (
-    CHECKPOINT_DIR, CONFIG_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LINEAGE_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE,
-    RESULTS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, VIDEOS_DIR, WANDB_DIR, RunDir, env_directory,
+from rpo_jax.report import figures, populations, reference, statistics, tables
+from rpo_jax.run.directory import (
+    CHECKPOINT_DIR, CONFIG_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LINEAGE_FILE, LOCK_FILE, METRICS_FILE,
+    PARAMS_FILE, RESULTS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, VIDEOS_DIR, WANDB_DIR, RunDir, env_directory,
 )  # fmt: skip
+from rpo_jax.run.files import write_text
+from rpo_jax.run.options import parse
 from rpo_jax.scores import kept_fraction, sample_std, tail_mean
-from rpo_jax.spec import parse
 
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
@@ -139,7 +139,7 @@ def group_runs(rows: Sequence[dict]) -> dict[tuple[str, str], dict[float, list[d
 
 def _spread(values: np.ndarray) -> dict[str, float]:
     """Mean, sample std (NaN for one seed) and the 95% bootstrap interval of the mean."""
-    low, high = aggregate.mean_interval(values)
+    low, high = statistics.mean_interval(values)
     return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high}
 
 
@@ -173,10 +173,10 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
 
 def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, str], np.ndarray]:
     """(env, variant) -> each seed's normalised final return, for the environments with a
-    fixed score range (`aggregate.SCORE_RANGES`)."""
+    fixed score range (`statistics.SCORE_RANGES`)."""
     scores = {}
     for (env, variant), stats in summary.items():
-        normalised = aggregate.normalise(env, stats["finals"])
+        normalised = statistics.normalise(env, stats["finals"])
         if normalised is not None:
             scores[env, variant] = normalised
     return scores
@@ -190,9 +190,9 @@ def aggregates(scores: dict, variants: list[str]) -> dict[str, dict]:
     for variant in variants:
         tasks = [runs for (_, v), runs in scores.items() if v == variant]
         if tasks:
-            low, high = aggregate.iqm_interval(tasks)
+            low, high = statistics.iqm_interval(tasks)
             result[variant] = {
-                "iqm": aggregate.iqm(*tasks), "low": low, "high": high, "needs": aggregate.interval_seeds_needed(len(tasks)),
+                "iqm": statistics.iqm(*tasks), "low": low, "high": high, "needs": statistics.interval_seeds_needed(len(tasks)),
                 "mean": float(np.mean([np.mean(task) for task in tasks])),
                 "envs": len(tasks), "runs": sum(len(task) for task in tasks),
             }  # fmt: skip
@@ -208,8 +208,8 @@ def improvements(scores: dict, variants: list[str], algos: dict[str, str]) -> li
             envs = [env for (env, v) in scores if v == x and (env, y) in scores]
             if envs:
                 xs, ys = [scores[env, x] for env in envs], [scores[env, y] for env in envs]
-                point, interval = aggregate.probability_of_improvement(xs, ys), aggregate.improvement_interval(xs, ys)
-                found.append((x, y, point, *interval, aggregate.improvement_seeds_needed(len(envs))))
+                point, interval = statistics.probability_of_improvement(xs, ys), statistics.improvement_interval(xs, ys)
+                found.append((x, y, point, *interval, statistics.improvement_seeds_needed(len(envs))))
     return found
 
 
@@ -235,7 +235,7 @@ def write_figures(rows: Sequence[dict], scores: dict, out: Path, published: dict
         written.append(figures.interval_bars(out / "normalized-scores.png", "IQM of normalised final return (95% bootstrap CI)",
                                              "normalised score", bars, colours, runs_of))  # fmt: skip
         thresholds = np.linspace(0.0, max(1.0, max(float(np.max(s)) for s in scores.values())), 101)
-        fractions = {v: aggregate.performance_profile([s for (_, x), s in scores.items() if x == v], thresholds) for v in table}
+        fractions = {v: statistics.performance_profile([s for (_, x), s in scores.items() if x == v], thresholds) for v in table}
         written.append(figures.profiles(out / "performance-profile.png", thresholds, fractions, colours, runs_of))
     written.append(figures.perturbed_gaussian(out / "perturbed-gaussian.png"))
     return written
@@ -259,7 +259,7 @@ def read_directories(directories: Sequence[Path], pool: bool = False) -> tuple[l
         raise UsageError(f"two directories named {max(names, key=names.count)} would merge their variants; rename one, or --pool")
     for directory in directories:
         prefix = f"{directory.name}: " if len(directories) > 1 and not pool else ""
-        jobs.update(pbt_report.population_jobs(directory, prefix))
+        jobs.update(populations.population_jobs(directory, prefix))
         for row in read_results(directory):
             row["variant"] = prefix + row["variant"]
             key = row["env"], row["variant"], row["seed"]
@@ -280,14 +280,14 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     check_out(out)
     out.mkdir(parents=True, exist_ok=True)
     members = group_runs(rows) if jobs else {}  # a population job's runs, before they become populations
-    rows = pbt_report.replicate_rows(rows, members, jobs)
+    rows = populations.replicate_rows(rows, members, jobs)
     summary = summarise(rows)
     scores = normalised_scores(summary)
     envs = unique(row["env"] for row in rows)
     variants = unique(row["variant"] for row in rows)
     algos = {row["variant"]: row["algo"] for row in rows}
     figure_files = write_figures(rows, scores, out / FIGURES_DIR, published) if rows else []
-    figure_files += pbt_report.write_figures(members, jobs, out / FIGURES_DIR)
+    figure_files += populations.write_figures(members, jobs, out / FIGURES_DIR)
     written = [f"{FIGURES_DIR}/{name}" for name in figure_files]
     experiments = unique(row["experiment"] for row in rows)
     seeds = sorted({s["seeds"] for s in summary.values()})
@@ -303,7 +303,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         *tables.result_tables(summary, envs, variants),
         *reference.section(summary, published, algos, tables.cell),
         *tables.aggregate_section(envs, aggregates(scores, variants), improvements(scores, variants, algos)),
-        *pbt_report.section(members, jobs),
+        *populations.section(members, jobs),
         *(f"![{name}]({name})" for name in written),
         "",
     ]
@@ -316,9 +316,11 @@ def _final_returns(runs: list[list[dict]]) -> dict:
     return {**{f"return_{name}": value for name, value in spread.items()}, "seeds": len(runs)}
 
 
-def run_series(record: dict, rows: Sequence[dict], prefix: str = "") -> tuple[dict[str, list[list[dict]]], pbt_report.Runs, dict]:
+def run_series(
+    record: dict, rows: Sequence[dict], prefix: str = ""
+) -> tuple[dict[str, list[list[dict]]], populations.Runs, dict]:
     """A training run's series (`prefix` + label -> its runs' rows in update order): one per sweep
-    point, or a population's "best of N" and "mean of N" (`pbt_report.replicated`); and, for
+    point, or a population's "best of N" and "mean of N" (`populations.replicated`); and, for
     pbt_report, its populations' members and job by label (both empty without a population)."""
     swept = list(record["sweep"])
     point_of = {
@@ -330,17 +332,17 @@ def run_series(record: dict, rows: Sequence[dict], prefix: str = "") -> tuple[di
     series: dict[str, list[list[dict]]] = defaultdict(list)
     for index, run_rows in by_run.items():
         series[prefix + point_of[index]].append(run_rows)
-    job = pbt_report.run_job(record)
+    job = populations.run_job(record)
     if job is None or not series:
         return series, {}, {}
     members = {(record["env"], label): {run[0]["seed"]: run for run in runs} for label, runs in series.items()}
     replaced = {}
     for (env, label), seeds in members.items():
-        replaced.update(pbt_report.replicated(seeds, job, label, f"{env} {label}"))
+        replaced.update(populations.replicated(seeds, job, label, f"{env} {label}"))
     return replaced, members, dict.fromkeys(series, job)
 
 
-def _run_counts(rows: Sequence[dict], members: pbt_report.Runs, jobs: dict) -> str:
+def _run_counts(rows: Sequence[dict], members: populations.Runs, jobs: dict) -> str:
     """How many runs the report read, and in how many populations where they are some."""
     sizes = [(len(seeds) // jobs[label].size, jobs[label].size) for (_, label), seeds in members.items()]
     return ": ".join([f"{len({row['run'] for row in rows})} run(s)", *(f"{k} population(s) of {n}" for k, n in sizes)])
@@ -379,7 +381,7 @@ def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None)
         figures.curves(out / FIGURES_DIR / f"{name}.png", title, series, metrics, colours)
         for name, metrics in zip(("return-entropy", "losses"), panels)
     ]
-    written += pbt_report.write_figures(members, jobs, out / FIGURES_DIR)
+    written += populations.write_figures(members, jobs, out / FIGURES_DIR)
     finals = {label: _final_returns(runs) for label, runs in series.items()}
     lines = [
         f"{REPORT_TITLE}{'run' if len(run_dirs) == 1 else 'runs'} of {title}",
@@ -391,7 +393,7 @@ def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None)
         "|---|---|---|",
         *(f"| {label} | {stats['seeds']} | {tables.cell(stats, 'return')} |" for label, stats in finals.items()),
         "",
-        *pbt_report.section(members, jobs),
+        *populations.section(members, jobs),
         *(f"![{name}]({FIGURES_DIR}/{name})" for name in written),
         "",
     ]  # fmt: skip

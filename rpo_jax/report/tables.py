@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
-from rpo_jax import aggregate
+from rpo_jax.report import statistics
 from rpo_jax.scores import with_spread
 
 
@@ -15,7 +15,7 @@ def cell(stats: dict, name: str, digits: int = 2) -> str:
     """`stats`' NAME_mean ± NAME_std [NAME_low, NAME_high]; the mean alone for one seed."""
     # One seed has no spread to show: a "± 0.00" would read as a measured one.
     mean, std = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std"))
-    interval = aggregate.interval_text(stats[f"{name}_low"], stats[f"{name}_high"], aggregate.interval_seeds_needed(), digits)
+    interval = statistics.interval_text(stats[f"{name}_low"], stats[f"{name}_high"], statistics.interval_seeds_needed(), digits)
     return with_spread(mean, f" ± {std} {interval}", stats["seeds"])
 
 
@@ -50,9 +50,9 @@ def result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[s
         "## Final return",
         "",
         "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
-        f"and, in brackets, the {aggregate.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
-        f"({aggregate.RESAMPLES} resamples; the value alone where a variant has one seed, n/a with fewer than "
-        f"{aggregate.interval_seeds_needed()}, where the interval could only restate the seeds' range); the best mean "
+        f"and, in brackets, the {statistics.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
+        f"({statistics.RESAMPLES} resamples; the value alone where a variant has one seed, n/a with fewer than "
+        f"{statistics.interval_seeds_needed()}, where the interval could only restate the seeds' range); the best mean "
         "of each environment in bold.",
         "",
         *table(envs, variants, returns, {env: best(summary, summary, env, "return_mean") for env in envs}),
@@ -96,8 +96,8 @@ def eval_table(summary: dict, envs: list[str], variants: list[str]) -> list[str]
 def iqm_text(entry: dict) -> str:
     """A `report.aggregates` entry's "IQM [low, high]", with n/a for what its runs cannot estimate."""
     if math.isnan(entry["iqm"]):
-        return aggregate.not_estimable(aggregate.IQM_MIN_RUNS, "runs")
-    return f"{entry['iqm']:.3f} {aggregate.interval_text(entry['low'], entry['high'], entry['needs'], 3)}"
+        return statistics.not_estimable(statistics.IQM_MIN_RUNS, "runs")
+    return f"{entry['iqm']:.3f} {statistics.interval_text(entry['low'], entry['high'], entry['needs'], 3)}"
 
 
 def aggregate_section(
@@ -106,7 +106,7 @@ def aggregate_section(
     """The comparison across environments: the score ranges, the IQM of each variant's normalised
     scores (`iqms`, from `report.aggregates`) and the probabilities of improvement (`found`, from
     `report.improvements`)."""
-    ranged = [env for env in envs if aggregate.score_range(env)]
+    ranged = [env for env in envs if statistics.score_range(env)]
     unranged = [env for env in envs if env not in ranged]
     lines = [
         "## Across environments",
@@ -116,8 +116,7 @@ def aggregate_section(
         "",
         "| env | low | high | from |",
         "|---|---|---|---|",
-        *(f"| {env} | {aggregate.score_range(env)[0]:g} | {aggregate.score_range(env)[1]:g} | {aggregate.score_range(env)[2]} |"
-          for env in ranged),
+        *(f"| {env} | {low:g} | {high:g} | {source} |" for env in ranged for low, high, source in [statistics.score_range(env)]),
         "",
     ]  # fmt: skip
     if unranged:
@@ -125,7 +124,7 @@ def aggregate_section(
     if iqms:
         lines += [
             "Interquartile mean (IQM) of the normalised scores of all runs of a variant, pooled over "
-            f"environments, with its {aggregate.CONFIDENCE:.0%} stratified bootstrap interval "
+            f"environments, with its {statistics.CONFIDENCE:.0%} stratified bootstrap interval "
             "(the runs of each environment resampled on their own), as in Agarwal et al. (2021):",
             "",
             "| variant | IQM [95% CI] | mean | environments | runs |",
@@ -141,7 +140,7 @@ def aggregate_section(
             "",
             "| RPO variant | baseline | P(RPO > baseline) [95% CI] |",
             "|---|---|---|",
-            *(f"| {x} | {y} | {p:.3f} {aggregate.interval_text(low, high, k, 3)} |" for x, y, p, low, high, k in found),
+            *(f"| {x} | {y} | {p:.3f} {statistics.interval_text(low, high, k, 3)} |" for x, y, p, low, high, k in found),
             "",
         ]
     return lines

@@ -12,12 +12,13 @@ from typing import Any, Iterator, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import devices, ppo
-from rpo_jax.checkpoint import Checkpointer
+from rpo_jax import ppo
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.diagnostics import Diagnostics
-from rpo_jax.plan import RunPlan, training_record
-from rpo_jax.rundir import sync
+from rpo_jax.parallel import devices
+from rpo_jax.run.checkpoint import Checkpointer
+from rpo_jax.run.directory import sync
+from rpo_jax.run.plan import RunPlan, training_record
 from rpo_jax.scores import sample_std, tail_mean
 
 

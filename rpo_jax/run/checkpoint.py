@@ -34,7 +34,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
-from rpo_jax import peers
+from rpo_jax.parallel import cluster
 
 # The record's key holding the checksums; `restore` returns the record without it.
 CHECKSUMS = "checksums"
@@ -148,7 +148,7 @@ class Checkpointer:
                 )
                 self.manager.wait_until_finished()
         except Exception as error:  # orbax and tensorstore raise ValueError and plain Exceptions for failed writes
-            if peers.lost_peer(error):
+            if cluster.lost_peer(error):
                 raise  # no fault of the disk: the processes' own line says which (peers)
             raise self._write_failure(update, error) from None
 

@@ -28,13 +28,13 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from rpo_jax.errors import UsageError
-from rpo_jax.rundir import RunDir
-from rpo_jax.plan import point_label
-from rpo_jax.sinks import VIDEO_TAG, row_scalars, run_hyperparameters
+from rpo_jax.run.directory import RunDir
+from rpo_jax.run.plan import point_label
+from rpo_jax.run.sinks import VIDEO_TAG, row_scalars, run_hyperparameters
 
 
 class WandbSink:
-    """A `runner.Sink` that logs each run's rows to a W&B run of its own."""
+    """A `chunks.Sink` that logs each run's rows to a W&B run of its own."""
 
     def __init__(self, project: str, entity: str | None = None, mode: str | None = None, group: str | None = None) -> None:
         try:

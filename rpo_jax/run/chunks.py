@@ -1,13 +1,13 @@
 """The runs of one command (seeds x sweep points) trained in one compiled program.
 
-    plan = new_plan("cartpole", Config(), RunSpec(out=Path("runs/x"), num_seeds=2))  # rpo_jax.plan
+    plan = new_plan("cartpole", Config(), RunSpec(out=Path("runs/x"), num_seeds=2))  # rpo_jax.run.plan
     summary = train(plan, sinks=[TensorBoardSink()], progress=None)
 
 `train` compiles one chunk of updates for all runs, calls it until the run is done, writes the
 logged rows to metrics.jsonl and to the sinks passed in, checkpoints between chunks, and at the
 end writes the parameters and summary.json. A plan made by `plan.resumed_plan` continues from the
 last checkpoint, exactly (on a CPU) except that host-side simulators start fresh episodes.
-The run directory's files are `rpo_jax.rundir`'s.
+The run directory's files are `rpo_jax.run.directory`'s.
 """
 
 from __future__ import annotations
@@ -26,19 +26,21 @@ from typing import Any, Callable, Iterator, NamedTuple, Protocol, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import devices, envs, evaluation, population, ppo, video
-from rpo_jax.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
+from rpo_jax import envs, ppo
 from rpo_jax.config import SWEEPABLE
-from rpo_jax.devices import is_primary
 from rpo_jax.diagnostics import Diagnostics
 from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
-from rpo_jax.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label
-from rpo_jax.policy import params_bytes
-from rpo_jax.records import (
+from rpo_jax.parallel import devices
+from rpo_jax.parallel.devices import is_primary
+from rpo_jax.run import eval_program, population, video
+from rpo_jax.run.checkpoint import CheckpointDamaged, Checkpointer, CheckpointMismatch, on_host
+from rpo_jax.run.directory import RunDir, hold_lock, write_rows
+from rpo_jax.run.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label
+from rpo_jax.run.records import (
     Clock, RunCheckpoints, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows, progress_metrics,
     record_returns, summarise,
 )  # fmt: skip
-from rpo_jax.rundir import RunDir, hold_lock, write_rows
+from rpo_jax.run.saved_policy import params_bytes
 
 
 class Sink(Protocol):
@@ -97,7 +99,7 @@ class Compiled:
     run_chunk: Callable[[ppo.TrainState], tuple[ppo.TrainState, tuple[ppo.Metrics, Diagnostics]]]
     chunk: int
     compile_seconds: float
-    run_eval: evaluation.EvaluationProgram | None = None  # None: evaluation off
+    run_eval: eval_program.EvaluationProgram | None = None  # None: evaluation off
     eval_keys: jax.Array | None = None
     capture: video.Capture | None = None  # None: no videos during training
     video_keys: jax.Array | None = None
@@ -107,11 +109,11 @@ class Compiled:
 def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
     """Trains every run of `plan` and returns the summary (also written to summary.json).
 
-    One process at a time writes a run directory (`rundir.hold_lock`). A new run that fails
+    One process at a time writes a run directory (`directory.hold_lock`). A new run that fails
     before its first checkpoint leaves nothing to resume, so its directory is removed and the
     same command can run again; after a checkpoint, and after Ctrl-C, `--resume` continues it.
 
-    Of several processes (`peers.join_processes`), each trains its share and returns the
+    Of several processes (`cluster.join_processes`), each trains its share and returns the
     summary, but only process 0 writes the run directory and calls the sinks and `progress`;
     the others write only their shares of the checkpoints (orbax's multi-process saves)."""
     grid = list(plan.grid)
@@ -251,14 +253,16 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
                 # The simulators died with the interrupted process and no checkpoint holds them.
                 state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
-    run_eval = evaluation.compile_evaluation(trainer.config, trainer.actor, env, plan.eval_episodes) if plan.eval_every else None
+    run_eval = (
+        eval_program.compile_evaluation(trainer.config, trainer.actor, env, plan.eval_episodes) if plan.eval_every else None
+    )
     labels = [run_label(run, list(plan.grid[0])) for run in runs]
     capture = None
     if plan.capture_video:
-        policy = evaluation.run_policy(trainer.config, trainer.actor, env)
+        policy = eval_program.run_policy(trainer.config, trainer.actor, env)
         capture = video.Capture(plan.out, env, policy, plan.capture_video_episodes, labels, is_primary())
     # Evaluation and video keys of their own, so that they leave training's random numbers alone.
-    eval_keys, video_keys = (evaluation.stream_keys(keys, stream) for stream in evaluation.STREAMS)
+    eval_keys, video_keys = (eval_program.stream_keys(keys, stream) for stream in eval_program.STREAMS)
     evolve = population.step_program(plan, placement, state) if plan.pbt else None
     seconds = time.perf_counter() - start
     return Compiled(
@@ -297,7 +301,7 @@ def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any])
 
 def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
     """Each run's evaluation return on `state`."""
-    inputs = compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state))
+    inputs = compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state))
     _, means = compiled.run_eval(inputs, compiled.eval_keys)
     return np.asarray(jax.device_get(means))
 
@@ -310,7 +314,7 @@ def after_chunk(
     eval_returns, videos = evaluate_after_chunk(compiled, state) if due.eval else None, None
     clock.lap("eval_seconds")
     if due.video:
-        inputs = jax.device_get(compiled.placement.real_runs(evaluation.evaluation_inputs(compiled.trainer, state)))
+        inputs = jax.device_get(compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state)))
         videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
     clock.lap("video_seconds")
     return eval_returns, videos

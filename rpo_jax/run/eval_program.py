@@ -1,5 +1,5 @@
 """Evaluation: the policy of every run on fresh copies of the environment, as one program
-vmapped over the runs. Training calls it between chunks of updates (`rpo_jax.runner`), with
+vmapped over the runs. Training calls it between chunks of updates (`rpo_jax.run.chunks`), with
 random numbers of its own; `python -m rpo_jax.evaluate` calls the same program on a run
 directory's saved runs (`saved_evaluation`), so that, given the same episodes and keys, it
 reproduces an evaluation logged in training bit for bit: another XLA program (one run under a
@@ -77,7 +77,7 @@ def saved_evaluation(
     saved: tuple[Config, dict[str, Any], Any, envs.RunningMeanStd], env: envs.Env, episodes: int, seeds: Sequence[int],
     deterministic: bool,
 ) -> tuple[np.ndarray, np.ndarray, Callable[[int], Policy]]:  # fmt: skip
-    """Training's evaluation program on every run of a finished run directory (`policy.load_runs`'s
+    """Training's evaluation program on every run of a finished run directory (`saved_policy.load_runs`'s
     `saved`) after its last update, each run's episodes chosen by its seed in `seeds` (its own
     seed gives the episodes of its final evaluation in training). Returns the returns [runs,
     episodes], their means [runs] (as training logs them) and each run's `Policy` by its index."""

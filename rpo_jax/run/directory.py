@@ -8,7 +8,7 @@
 | `summary.json` | final returns and timings; written last, so its presence marks a finished run |
 | `params.msgpack` | actor and critic parameters and observation statistics, one slice per run |
 | `tensorboard/` | TensorBoard events, one directory per run |
-| `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.checkpoint`) |
+| `checkpoints/` | orbax checkpoints of the batched training state (`rpo_jax.run.checkpoint`) |
 | `.lock` | the PID of the process writing the run; locked while it does (`hold_lock`) |
 | `wandb/` | W&B's files of `--track wandb` (offline runs for `wandb sync`) |
 
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import IO, Any, Iterator
 
 from rpo_jax.errors import UsageError
-from rpo_jax.files import write_bytes, write_json
+from rpo_jax.run.files import write_bytes, write_json
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
@@ -40,7 +40,7 @@ TENSORBOARD_DIR = "tensorboard"
 CHECKPOINT_DIR = "checkpoints"
 VIDEOS_DIR = "videos"  # --capture-video's, one folder per run where several train together
 LOCK_FILE = ".lock"
-WANDB_DIR = "wandb"  # W&B makes it in the run directory (`tracking.WandbSink`) unless WANDB_DIR is set
+WANDB_DIR = "wandb"  # W&B makes it in the run directory (`wandb_sink.WandbSink`) unless WANDB_DIR is set
 LINEAGE_FILE = "pbt.jsonl"
 EXPERIMENT_FILE = "experiment.json"
 RESULTS_FILE = "results.csv"
@@ -110,6 +110,18 @@ class RunDir:
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         write_json(self.path / SUMMARY_FILE, summary)
+
+    def trained_run(self, run: int | None) -> tuple[dict[str, Any], int]:
+        """config.json's record and the index of the run that evaluate and export read: `run`, or
+        by default the first, or a population's best member. Refuses a directory without trained
+        parameters, and a run it lacks."""
+        if not self.has_params():
+            raise UsageError(f"{self.path} has no {PARAMS_FILE}; give the directory of a finished rpo_jax.train run")
+        saved = self.read_config()
+        index = self.default_run() if run is None else run
+        if not 0 <= index < len(saved["runs"]):
+            raise UsageError(f"--run must be in [0, {len(saved['runs'])}), got {run}")
+        return saved, index
 
     def default_run(self) -> int:
         """The run a policy is taken from when none is named: a population's best member
