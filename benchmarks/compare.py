@@ -36,8 +36,8 @@ its own outputs, and a second compile would be timed as training.
 Environment stepping at N environments with uniform random actions, in one process: the bare
 Playground environment vmapped (no time limit, no reset), Brax's training wrappers, and the
 stack rpo_jax trains on (time limit, auto-reset, episode statistics, clipping, normalisers),
-its rollouts of 32 steps each starting as the trainer's do. The phases of one update, rpo_jax's
-and the loop's, are `phases.py`'s.
+its rollouts of 32 steps each starting as the trainer's do. (`lab/phases.py` times one update
+of rpo_jax and of the loop phase by phase, on this work.)
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import purejaxrl_loop  # this folder's, on the path when run as a script
+# JAX, Brax and the loop are imported where they are used, so that --help answers at once.
 
 TASK = "CartpoleBalance"
 ENV = "mjx-dmc/cartpole-balance"
@@ -198,6 +198,8 @@ def measure_rpo_jax(num_envs: int, timesteps: int) -> dict[str, float]:
 
 
 def measure_purejaxrl(num_envs: int, timesteps: int) -> dict[str, float]:
+    import purejaxrl_loop  # this folder's, on the path when run as a script
+
     loop = purejaxrl_loop.make_loop(num_envs, timesteps, playground_env)
     return measure_compiled(PROGRAMS["purejaxrl"], loop.train, loop.num_updates * num_envs * NUM_STEPS)
 
@@ -347,15 +349,21 @@ def markdown(results: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def main() -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--num-envs", type=int, nargs="+", default=[1024], help="environments per run, each compared")
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1024], help="environments per run, each size compared")
     parser.add_argument("--timesteps", type=int, default=3_145_728, help="environment steps per training run")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds of every trainer")
+    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds of every trainer, each a fresh process")
     parser.add_argument("--step-rollouts", type=int, default=40, help="rollouts of 32 steps in the stepping timing")
     parser.add_argument("--json", type=Path, help="write the results here")
-    parser.add_argument("--measure", choices=TRAINERS, help=argparse.SUPPRESS)  # one trainer, in this process
-    args = parser.parse_args()
+    parser.add_argument(
+        "--measure", choices=TRAINERS, help="time this one trainer in this process and print its figures as a JSON line"
+    )
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     if args.measure:
         print(json.dumps(MEASURES[args.measure](args.num_envs[0], args.timesteps)))
         return 0

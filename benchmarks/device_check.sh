@@ -1,7 +1,12 @@
 #!/usr/bin/env bash
-# Every GPU figure the project claims or aims for, in one prepared run (under 10 minutes on one GPU):
+# Every GPU figure the project claims or aims for, in one prepared run (under 10 minutes on one GPU).
 #
-#   benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]     # OUTDIR: default $OUT if set, else ./device-check
+#   benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]
+#
+#   --cpu-smoke  the same steps at tiny sizes, side by side on the CPU's cores; its figures mean nothing
+#   OUTDIR       where the logs and results go (default: $OUT if set, else ./device-check)
+#   -h, --help   print this text
+#   PYTHON=...   (environment) the interpreter to run (default: .venv's, else python3 on the PATH)
 #
 # | figure | aim | measured by |
 # |---|---|---|
@@ -15,16 +20,26 @@
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
 # Writes OUTDIR/<step>.log, .status.json and the step's own .json, OUTDIR/status.txt, OUTDIR/results.json
 # and OUTDIR/results.md (a Markdown table).
-# --cpu-smoke: the same steps at tiny sizes (scaling over the CPU made 2 devices), to check on a CPU
-# that the script works before GPU time is spent on it; its figures mean nothing. Its steps run
-# side by side, as many at a time as there are cores: their time is XLA compiling, on one core each.
+# --cpu-smoke checks on a CPU that the script works before GPU time is spent on it (scaling over
+# the CPU made 2 devices). Its steps run side by side, as many at a time as there are cores: their
+# time is XLA compiling, on one core each.
 # On a machine whose Python already holds JAX and which cannot download, install the wheels of
-# benchmarks/requirements-beside-jax.txt first (its header says how); PYTHON names the interpreter
-# (default: .venv's, else python3 on the PATH).
+# benchmarks/requirements-beside-jax.txt first (its header says how).
 set -uo pipefail
+case "${1:-}" in
+    -h | --help)
+        # The comment block above, without its marks.
+        awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"
+        exit 0
+        ;;
+esac
 cd "$(dirname "$0")/.."
 smoke=0
 if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
+if [ "${1:-}" != "${1#-}" ] || [ $# -gt 1 ]; then
+    echo "usage: benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]   (--help says more)" >&2
+    exit 2
+fi
 out_dir=${1:-${OUT:-./device-check}}
 mkdir -p "$out_dir"
 source benchmarks/run_step.sh

@@ -19,8 +19,10 @@ each SAME_START_TASKS task.
 first observation of these tasks determines (joint angles as cosine and sine, and velocities).
 """
 
+import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -122,17 +124,20 @@ def same_start_returns(starts: dict) -> dict:
     return {"seed": SAME_START_SEED, "steps": STEPS, "tasks": result}
 
 
-def main() -> None:
-    mode = sys.argv[1] if len(sys.argv) > 1 else ""
-    if mode == "layouts":
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Reference figures from dm_control itself for tests/test_dmc.py, as JSON.")
+    modes = parser.add_subparsers(dest="mode", required=True, metavar="MODE", help="what to compute")
+    modes.add_parser("layouts", help="every task's observation layout and action bounds; the paper's tasks' fixed-action returns")
+    modes.add_parser("starts", help="first observations of envpool episodes of the same-start tasks (rpo_jax's venv)")
+    same_start = modes.add_parser("same-start", help="dm_control's fixed-action returns from the states `starts` printed")
+    same_start.add_argument("starts", type=Path, help="the JSON file that `starts` printed")
+    args = parser.parse_args(argv)
+    if args.mode == "layouts":
         json.dump(layouts(), sys.stdout, indent=1)
-    elif mode == "starts":
+    elif args.mode == "starts":
         json.dump(envpool_starts(), sys.stdout)
-    elif mode == "same-start" and len(sys.argv) == 3:
-        with open(sys.argv[2]) as file:
-            json.dump(same_start_returns(json.load(file)), sys.stdout, indent=1)
     else:
-        sys.exit("usage: dmc_reference.py layouts | starts | same-start STARTS.json")
+        json.dump(same_start_returns(json.loads(args.starts.read_text())), sys.stdout, indent=1)
     print()
 
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rpo_jax import reference
-from rpo_jax.report import read_results
+from rpo_jax.report import reference
+from rpo_jax.report.compose import read_results
 from rpo_jax.scores import tail_mean
 
 
@@ -40,12 +40,14 @@ def per_seed(rows: list[dict], window_steps: int) -> dict[tuple[str, str], dict[
     return finals
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("experiment", type=Path)
-    parser.add_argument("--reference", type=Path, required=True)
-    parser.add_argument("--window-steps", type=int, default=100_000)
-    args = parser.parse_args()
+    parser.add_argument("experiment", type=Path, help="an experiment's directory (its results.csv), as experiment wrote it")
+    parser.add_argument("--reference", type=Path, required=True, help="the published figures, as benchmarks/reference/*.csv")
+    parser.add_argument(
+        "--window-steps", type=int, default=100_000, help="the reference's window: the last this many environment steps"
+    )
+    args = parser.parse_args(argv)
     published = reference.read(args.reference)
     print(f"| env | variant | seeds | last 10% of updates: ± sample std / ± n std | last {args.window_steps:,} steps: "
           "± sample std / ± n std | reference |\n|---|---|---|---|---|---|")  # fmt: skip

@@ -5,8 +5,9 @@ writes with every row (`sinks.TensorBoardSink`), and checks the rebuild against 
 
 Prints how many kept rows the rebuild reproduces (all must, steps/s aside: TensorBoard keeps it
 as float32) and how many rows it would add after them; `--append` adds them. Used once, for
-walker-run's 1-environment run, whose metrics.jsonl was replaced under the running process
-(benchmarks/RESULTS.md, "A ninth task: walker-run").
+walker-run's 1-environment run (benchmarks/raw/walker-run-1env-8m-terminate), whose
+metrics.jsonl was replaced under the running process (benchmarks/lab/notes/reference.md, "A ninth
+task: walker-run").
 """
 
 from __future__ import annotations
@@ -15,18 +16,20 @@ import argparse
 import json
 from pathlib import Path
 
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
 from rpo_jax.hyperparams import SWEEPABLE
-from rpo_jax.rundir import METRICS_FILE, RunDir
-from rpo_jax.sinks import TENSORBOARD_METRICS
+from rpo_jax.run.directory import METRICS_FILE, RunDir
 
 CONSTANT = ("run", "seed", *SWEEPABLE)  # a run's fields on every row
-TRAIN_TAGS = (*TENSORBOARD_METRICS, "sps")  # under train/, as `sinks.row_scalars` writes them
 
 
 def rebuilt_rows(run_dir: RunDir, kept: list[dict]) -> dict[tuple[int, int], dict]:
     """(run, env_steps) -> the row rebuilt from the run's events, for every logged step."""
+    # Imported here, so that --help answers at once (the sinks import JAX).
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from rpo_jax.run.sinks import TENSORBOARD_METRICS
+
+    train_tags = (*TENSORBOARD_METRICS, "sps")  # under train/, as `sinks.row_scalars` writes them
     config = run_dir.read_config()["config"]
     batch = config["num_envs"] * config["num_steps"]
     rows = {}
@@ -34,10 +37,11 @@ def rebuilt_rows(run_dir: RunDir, kept: list[dict]) -> dict[tuple[int, int], dic
         (events_file,) = (run_dir.tensorboard / f"seed_{fields['seed']}").glob("events*")
         events = EventAccumulator(str(events_file), size_guidance={"scalars": 0})
         events.Reload()
-        series = {tag: {point.step: point.value for point in events.Scalars(f"train/{tag}")} for tag in TRAIN_TAGS}
-        evaluations = {point.step: point.value for point in events.Scalars("eval/episode_return")}
+        series = {tag: {point.step: point.value for point in events.Scalars(f"train/{tag}")} for tag in train_tags}
+        evaluated = "eval/episode_return" in events.Tags()["scalars"]  # a run without --eval-every has none
+        evaluations = {point.step: point.value for point in events.Scalars("eval/episode_return")} if evaluated else {}
         for step in sorted(series["episode_return"]):
-            row = {**fields, "update": step // batch, "env_steps": step, **{tag: series[tag][step] for tag in TRAIN_TAGS}}
+            row = {**fields, "update": step // batch, "env_steps": step, **{tag: series[tag][step] for tag in train_tags}}
             row["episodes_finished"] = int(row["episodes_finished"])
             rows[fields["run"], step] = {**row, **({"eval_return": evaluations[step]} if step in evaluations else {})}
     return rows
@@ -47,11 +51,11 @@ def without_sps(row: dict) -> dict:
     return {name: value for name, value in row.items() if name != "sps"}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path)
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    parser.add_argument("run_dir", type=Path, help="the run's directory (its metrics.jsonl and tensorboard/)")
     parser.add_argument("--append", action="store_true", help="append the rows after the kept ones")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     run_dir = RunDir(args.run_dir)
     kept = {(row["run"], row["env_steps"]): row for row in run_dir.read_metrics()}
     rebuilt = rebuilt_rows(run_dir, list(kept.values()))

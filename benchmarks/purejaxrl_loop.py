@@ -13,12 +13,21 @@ The config is compare.py's (`SETTINGS`): 32 steps, 4 epochs of 8 minibatches, 64
 networks, Adam 3e-4 held constant with eps 1e-8, gradient norm clipped at 0.5, clip 0.2, no
 value-loss clipping, no entropy bonus, gamma 0.99, lambda 0.95, advantages standardised per
 minibatch.
+
+Run alone, it trains once on that work and prints its training steps/s (compiled ahead of time,
+run once, then timed on its second call, as compare.py times it):
+
+    python benchmarks/purejaxrl_loop.py --num-envs 1024 --timesteps 1048576
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import functools
+import json
+import sys
+import time
 from typing import Any, Callable, NamedTuple
 
 import distrax
@@ -199,3 +208,31 @@ def phases(loop: Loop) -> dict[str, Callable[[], Any]]:
         "rollout": functools.partial(rollout, runner),
         "minibatch epochs": functools.partial(epochs, runner, traj, last_value),
     }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="The PureJaxRL-style loop alone: its training steps/s on compare.py's work.")
+    parser.add_argument("--num-envs", type=int, default=1024, help="parallel environments")
+    parser.add_argument("--timesteps", type=int, default=1_048_576, help="environment steps of the run (whole updates)")
+    args = parser.parse_args(argv)
+    steps_per_update = args.num_envs * SETTINGS["num_steps"]
+    if args.timesteps < steps_per_update:
+        parser.error(f"--timesteps must be at least one update: {args.num_envs} environments x {SETTINGS['num_steps']} steps")
+    from compare import playground_env  # this folder's, on the path when run as a script
+
+    loop = make_loop(args.num_envs, args.timesteps, playground_env)
+    key = jax.random.PRNGKey(0)
+    start = time.perf_counter()
+    run = jax.jit(loop.train).lower(key).compile()
+    compile_seconds = time.perf_counter() - start
+    jax.block_until_ready(run(key))
+    start = time.perf_counter()
+    jax.block_until_ready(run(key))
+    steps = loop.num_updates * steps_per_update
+    sps = steps / (time.perf_counter() - start)
+    print(json.dumps({"num_envs": args.num_envs, "timesteps": steps, "sps": sps, "compile_seconds": compile_seconds}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,4 +1,4 @@
-# Sourced by the prepared device scripts (device_check.sh, device_gap.sh): the interpreter they
+# Sourced by the prepared device scripts (device_check.sh, lab/device_gap.sh): the interpreter they
 # run and how each of their steps runs. Not a script of its own.
 
 # benchmark_python ROOT: prints the interpreter to run: PYTHON where set (refused in one line,

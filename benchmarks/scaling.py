@@ -1,4 +1,4 @@
-"""Training steps/s against the number of devices, for both placements of rpo_jax.devices.
+"""Training steps/s against the number of devices, for both placements of rpo_jax.parallel.devices.
 
     python benchmarks/scaling.py --env cartpole --num-envs 4096 --runs 8 --json OUT.json
     python benchmarks/scaling.py --cpu-devices 4 --num-envs 256 --runs 4   # on a CPU
@@ -23,17 +23,17 @@ import time
 from pathlib import Path
 
 
-def parse_args() -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="cartpole")
-    parser.add_argument("--num-envs", type=int, default=4096)
-    parser.add_argument("--runs", type=int, default=8, help="runs of the runs placement")
-    parser.add_argument("--updates", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--env", default="cartpole", help="registered environment name (python -m rpo_jax.envs lists them)")
+    parser.add_argument("--num-envs", type=int, default=4096, help="environments of each run")
+    parser.add_argument("--runs", type=int, default=8, help="runs (seeds) of the runs placement")
+    parser.add_argument("--updates", type=int, default=10, help="PPO updates in each timed program")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls of each program; the fastest counts")
     parser.add_argument("--devices", type=int, nargs="+", help="device counts; default 1, 2, 4, ... up to all")
     parser.add_argument("--cpu-devices", type=int, help="make the CPU this many devices (as rpo_jax.train)")
-    parser.add_argument("--json", type=Path)
-    return parser.parse_args()
+    parser.add_argument("--json", type=Path, help="write the results here")
+    return parser.parse_args(argv)
 
 
 def timed(placement, config, env, num_runs: int, updates: int, repeats: int) -> tuple[float, float]:
@@ -58,12 +58,13 @@ def timed(placement, config, env, num_runs: int, updates: int, repeats: int) -> 
     return min(times), compile_seconds
 
 
-def main() -> int:
-    args = parse_args()
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     import jax
 
-    from rpo_jax import devices, envs
+    from rpo_jax import envs
     from rpo_jax.config import PRESETS
+    from rpo_jax.parallel import devices
 
     devices.split_cpu(args.cpu_devices)
 

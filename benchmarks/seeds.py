@@ -15,14 +15,31 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-import jax
-
-from rpo_jax import devices, envs, ppo
 from rpo_jax.config import PRESETS, Config
 
+# JAX and the environments are imported where they are used, so that --help answers at once.
 
-def timed_training(config: Config, env: envs.Env, num_seeds: int, repeats: int) -> float:
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="cartpole", help="registered environment name (python -m rpo_jax.envs lists them)")
+    parser.add_argument("--preset", choices=sorted(PRESETS), help="config of the training (default: the CPU config, Config())")
+    parser.add_argument("--seeds", type=int, default=10, help="seeds of the vmapped program, timed against one seed")
+    parser.add_argument("--total-timesteps", type=int, default=204_800, help="environment steps per seed")
+    parser.add_argument("--num-envs", type=int, help="environments per seed (default: the preset's)")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls of each program; the fastest counts")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    return parser.parse_args(argv)
+
+
+def timed_training(config: Config, env: Any, num_seeds: int, repeats: int) -> float:
+    import jax
+
+    from rpo_jax import ppo
+    from rpo_jax.parallel import devices
+
     train = ppo.make_train(config, env)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
     compiled = jax.jit(devices.map_runs(train)).lower(keys).compile()
@@ -34,16 +51,11 @@ def timed_training(config: Config, env: envs.Env, num_seeds: int, repeats: int) 
     return min(times)
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="cartpole")
-    parser.add_argument("--preset", choices=sorted(PRESETS), help="default: the CPU config")
-    parser.add_argument("--seeds", type=int, default=10)
-    parser.add_argument("--total-timesteps", type=int, default=204_800)
-    parser.add_argument("--num-envs", type=int, help="override the preset's environments per seed")
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--json", type=Path)
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    import jax
+
+    from rpo_jax import envs
 
     config = PRESETS[args.preset] if args.preset else Config()
     config = dataclasses.replace(config, total_timesteps=args.total_timesteps, rpo_alpha=0.5)

@@ -22,18 +22,40 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
-from rpo_jax import devices, envs, ppo
 from rpo_jax.config import PRESETS
-from rpo_jax.envs.host import HostEnv, step_side_by_side
+
+if TYPE_CHECKING:
+    from rpo_jax.envs.host import HostEnv
+
+# JAX and the environments are imported where they are used, so that --help answers at once.
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="cartpole", help="registered environment name (python -m rpo_jax.envs lists them)")
+    parser.add_argument("--num-envs", type=int, default=1024, help="parallel environments, in the stepping and the training")
+    parser.add_argument("--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training")
+    parser.add_argument("--num-steps", type=int, help="rollout length of the timed training (default: the preset's)")
+    parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
+    parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
+    parser.add_argument(
+        "--seeds", type=int, default=1,
+        help="also time this many seeds trained in one program; seeds_wall_ratio is its wall time over one seed's",
+    )  # fmt: skip
+    parser.add_argument(
+        "--shared-pools", action="store_true", help="the seeds share one pool of host simulators, as with train --shared-pools"
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls of each program; the fastest counts")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    return parser.parse_args(argv)
 
 
 def best_of(fn, repeats: int) -> float:
     """Fastest wall time of `fn()` over `repeats` calls (the least disturbed by other load)."""
+    import jax
+
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -43,6 +65,11 @@ def best_of(fn, repeats: int) -> float:
 
 
 def env_steps_per_second(name: str, num_envs: int, num_steps: int, repeats: int) -> float:
+    import jax
+    import jax.numpy as jnp
+
+    from rpo_jax import envs
+
     env = envs.make_vector_env(name, num_envs)
     low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
 
@@ -69,6 +96,10 @@ def raw_host_steps_per_second(
     """Steps/s summed over `num_pools` pools of `num_envs` simulators, each seeded apart, stepped
     from Python with numpy actions as the trainer's callback steps its runs' pools (side by side),
     and the cores they kept busy: the process's CPU seconds over the wall seconds of all repeats."""
+    import numpy as np
+
+    from rpo_jax.envs.host import step_side_by_side
+
     pools = [env.make_simulators(num_envs, seed * num_envs) for seed in range(num_pools)]
     for pool in pools:
         pool.reset()
@@ -95,6 +126,11 @@ def train_steps_per_second(
 ) -> tuple[float, float]:  # fmt: skip
     """Training steps/s summed over `num_seeds` seeds trained in one program (`devices.map_runs`:
     vmapped, and one seed unbatched, as `train --num-seeds` does), and the program's compile time."""
+    import jax
+
+    from rpo_jax import envs, ppo
+    from rpo_jax.parallel import devices
+
     config = dataclasses.replace(PRESETS[preset], num_envs=num_envs, rpo_alpha=0.5)
     config = dataclasses.replace(config, num_steps=num_steps or config.num_steps)
     config = dataclasses.replace(config, total_timesteps=config.batch_size * num_updates)
@@ -110,24 +146,13 @@ def train_steps_per_second(
     return steps / best_of(lambda: run(state), repeats), compile_seconds
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="cartpole")
-    parser.add_argument("--num-envs", type=int, default=1024)
-    parser.add_argument("--preset", default="isaacgym", choices=sorted(PRESETS), help="config of the timed training")
-    parser.add_argument("--num-steps", type=int, help="rollout length of the timed training (default: the preset's)")
-    parser.add_argument("--env-steps", type=int, default=500, help="steps per environment in the raw stepping scan")
-    parser.add_argument("--train-updates", type=int, default=20, help="PPO updates in the timed training program")
-    parser.add_argument(
-        "--seeds", type=int, default=1,
-        help="also time this many seeds trained in one program; seeds_wall_ratio is its wall time over one seed's",
-    )  # fmt: skip
-    parser.add_argument(
-        "--shared-pools", action="store_true", help="the seeds share one pool of host simulators, as with train --shared-pools"
-    )
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--json", type=Path, help="write the results here")
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    import jax
+
+    from rpo_jax import envs
+    from rpo_jax.envs.host import HostEnv
+
     try:
         env = envs.make_env(args.env)
     except ValueError as error:

@@ -2,15 +2,17 @@
 
 - `<!-- generate: cli-reference -->` in a page becomes every command's flags (`rpo_jax.__main__.COMMANDS`),
   a table per group of flags (flag, type, default, help), built by tyro from the dataclass the command
-  parses (its module's `...Args`, nesting `rpo_jax.spec`'s and `rpo_jax.config.Config`); a command
+  parses (its module's `...Args`, nesting `rpo_jax.run.options`'s and `rpo_jax.config.Config`); a command
   without one (`envs`) is shown by its own usage text.
 - `<!-- generate: env-table -->` becomes the registry's environments, one table per suite, from
   the static specs that `python -m rpo_jax.envs` lists.
 - `reports/<name>/report.md` (with its figures) for every committed report under
   benchmarks/reports/, as `python -m rpo_jax.report` wrote it, and the nav's "Reports" section
   listing them, so a new report needs no edit of mkdocs.yml.
-- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections, grouped by topic, and the nav's
-  "Benchmarks" section listing the topics that have sections.
+- `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections (the standing results), grouped by
+  topic; `benchmarks/scripts.md`: benchmarks/README.md, each standing script's entry, where
+  `<!-- help: SCRIPT -->` becomes what `benchmarks/SCRIPT --help` prints; and the nav's
+  "Benchmarks" section listing them. benchmarks/lab/ (investigations and their notes) is not published.
 """
 
 from __future__ import annotations
@@ -23,29 +25,30 @@ import importlib
 import io
 import os
 import re
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
 import tyro.extras
-
 from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parent.parent
 REPORTS = ROOT / "benchmarks" / "reports"
 RESULTS = ROOT / "benchmarks" / "RESULTS.md"
+SCRIPTS = ROOT / "benchmarks" / "README.md"
+HELP = re.compile(r"<!-- help: ([\w.-]+) -->")
 MARKER = re.compile(r"<!-- generate: ([a-z-]+) -->")
 # tyro ends a flag's help with its default, as the command line would take it, or "(required)".
 DEFAULT = re.compile(r"(.*?)(?:\s*\((?:default: (.*)|required)\))?\s*$", re.DOTALL)
 
-# RESULTS.md's sections by a word of their heading; a section that matches none goes to "other".
+# RESULTS.md's sections by a word of their heading, the first topic that matches; a section that
+# matches none goes to "other".
 TOPICS = {
-    "speed": ("Speed", ("Throughput", "Seeds in one program", "Start-up", "Against Brax", "on MJX")),
-    "learning": (
-        "Learning",
-        ("Learning on", "Entropy", "BallBalance", "Gym, PyBullet", "Experiments", "Time limits", "published reference"),
-    ),
-    "devices": ("Devices and processes", ("Several devices",)),
-    "installing": ("Installing and testing", ("Installing",)),
+    "speed": ("Speed", ("Throughput", "Seeds in one program", "Against Brax", "Start-up", "Costs")),
+    "devices": ("Devices and GPUs", ("Several devices", "GPU")),
+    "learning": ("Learning", ("Learning", "published reference")),
+    "installing": ("Installing and testing", ("Test-suite",)),
     "other": ("Other measurements", ()),
 }
 
@@ -147,12 +150,17 @@ def on_page_markdown(markdown: str, page, config, files) -> str:
     return MARKER.sub(lambda match: GENERATORS[match.group(1)](), markdown)
 
 
+def published(text: str) -> str:
+    """A page of benchmarks/ as the site shows it: its links are relative to benchmarks/, the
+    site's pages sit in docs/benchmarks/ (RESULTS.md as the index, README.md as the scripts' page)
+    and the reports in docs/reports/."""
+    text = re.sub(r"\]\(reports/", "](../reports/", text)
+    return text.replace("](RESULTS.md)", "](index.md)").replace("](README.md)", "](scripts.md)")
+
+
 def results_sections() -> tuple[str, dict[str, list[str]]]:
     """RESULTS.md's text before its first section, and its sections grouped by topic."""
-    text = RESULTS.read_text()
-    # Its links are relative to benchmarks/; the topic pages sit in docs/benchmarks/, the reports in docs/reports/.
-    text = re.sub(r"\]\(reports/", "](../reports/", text)
-    preamble, *sections = re.split(r"\n(?=## )", text)
+    preamble, *sections = re.split(r"\n(?=## )", published(RESULTS.read_text()))
     grouped: dict[str, list[str]] = {topic: [] for topic in TOPICS}
     for section in sections:
         heading = section.splitlines()[0]
@@ -161,9 +169,24 @@ def results_sections() -> tuple[str, dict[str, list[str]]]:
     return preamble.removeprefix("# Results").strip(), grouped
 
 
+def script_help(name: str) -> str:
+    """What `benchmarks/NAME --help` prints, at a fixed width, as a block of the page."""
+    path = ROOT / "benchmarks" / name
+    command = ["bash", str(path), "--help"] if name.endswith(".sh") else [sys.executable, str(path), "--help"]
+    env = {**os.environ, "COLUMNS": "100"}
+    printed = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, check=True, timeout=120).stdout
+    text = "\n".join(line.rstrip() for line in printed.strip().splitlines())
+    return f"`{name} --help`:\n\n```text\n{text}\n```"
+
+
+def scripts_page() -> str:
+    """benchmarks/README.md, each `<!-- help: SCRIPT -->` replaced by the script's --help."""
+    return HELP.sub(lambda match: script_help(match.group(1)), published(SCRIPTS.read_text()))
+
+
 def benchmark_pages() -> dict[str, str]:
     preamble, grouped = results_sections()
-    pages = {}
+    pages = {"benchmarks/scripts.md": scripts_page()}
     links = []
     for topic, sections in grouped.items():
         if sections:
@@ -171,7 +194,8 @@ def benchmark_pages() -> dict[str, str]:
             pages[f"benchmarks/{topic}.md"] = f"# {title}\n\n" + "\n".join(sections)
             links.append(f"- [{title}]({topic}.md): " + "; ".join(s.splitlines()[0].removeprefix("## ") for s in sections))
     pages["benchmarks/index.md"] = (
-        "# Benchmarks\n\n" + preamble + "\n\nBy topic (the sections of `benchmarks/RESULTS.md`):\n\n" + "\n".join(links) + "\n"
+        f"# Benchmarks\n\n{preamble}\n\n[Running the benchmarks](scripts.md): what each script measures, its "
+        "command and its flags.\n\nThe results by topic (the sections of `benchmarks/RESULTS.md`):\n\n" + "\n".join(links) + "\n"
     )
     return pages
 
@@ -183,9 +207,9 @@ def reports() -> list[Path]:
 
 def on_config(config):
     """Fills the nav's "Reports" and "Benchmarks" sections (empty in mkdocs.yml): a page per
-    committed report, and the benchmarks' index and topic pages."""
+    committed report, and the benchmarks' index, scripts and topic pages."""
     topics = [topic for topic, sections in results_sections()[1].items() if sections]
-    fill_section(config["nav"] or [], "Benchmarks", [f"benchmarks/{page}.md" for page in ("index", *topics)])
+    fill_section(config["nav"] or [], "Benchmarks", [f"benchmarks/{page}.md" for page in ("index", "scripts", *topics)])
     pages = [{report.parent.name: f"reports/{report.parent.name}/report.md"} for report in reports()]
     fill_section(config["nav"] or [], "Reports", pages)
     return config

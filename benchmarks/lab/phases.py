@@ -1,6 +1,6 @@
 """One update in its phases, rpo_jax's against the PureJaxRL-style loop's, and the epochs' arithmetic rate.
 
-    python benchmarks/phases.py --num-envs 256 1024 4096 --rounds 5
+    python benchmarks/lab/phases.py --num-envs 256 1024 4096 --rounds 5
 
 compare.py's work (Playground's CartpoleBalance, `impl='jax'`, 32 steps, 4 epochs of 8
 minibatches, 64-64 networks). Each phase is compiled as a program of its own and called on the
@@ -33,9 +33,11 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-import purejaxrl_loop  # this folder's, on the path when run as a script
-from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, playground_env, rpo_config
-from rpo_jax import envs, ppo
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/: compare.py and the loop
+import purejaxrl_loop  # noqa: E402
+from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, playground_env, rpo_config  # noqa: E402
+
+from rpo_jax import envs, ppo  # noqa: E402
 
 
 def rpo_jax_phases(num_envs: int) -> dict[str, Callable[[], Any]]:
@@ -181,12 +183,12 @@ def spread(seconds: list[float] | None) -> str:
     return f"{statistics.median(seconds):.4f} ({min(seconds):.4f}-{max(seconds):.4f})"
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1024], help="environments, each size measured")
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds of every program")
     parser.add_argument("--json", type=Path, help="write the results here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     results: dict[str, Any] = {"jax": jax.__version__, "matmul_flops": matmul_rate(), "peak_flops": peak_rate()}
     results["sizes"] = {n: measure(n, args.rounds) for n in args.num_envs}
     print(markdown(results))
