@@ -4,12 +4,13 @@
 # subprocesses inherit it.
 import importlib.metadata
 import os
+import time
 
 FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 # XLA's older fusion emitters compile a training program in 25-30% less time than its MLIR ones.
 # jaxlib 0.10 has both (the newest for Python 3.11); 0.12's XLA knows only the MLIR ones and aborts
 # on the flag. They fuse differently, so results move in the last bits: tests that compare two
-# programs bit for bit compile them with the default (test_methods.DEFAULT_CODEGEN).
+# programs bit for bit compile them with the default (test_algorithms.DEFAULT_CODEGEN).
 OLDER_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
 if importlib.metadata.version("jaxlib").startswith("0.10."):
     FAST_COMPILE += f" {OLDER_EMITTERS}"
@@ -37,6 +38,32 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # for the proces
 os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILE_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # this process read its flags already
 chunks.use_compile_cache(COMPILE_CACHE)
+
+
+class SteadyClock:
+    """A stand-in for a module's `time` (monkeypatch.setattr(module, "time", SteadyClock())), for
+    tests of durations that must not depend on the machine's load: each reading (perf_counter,
+    monotonic) moves it on by TICK, and `sleep` by the seconds asked for, after a real pause of a
+    millisecond so that other threads run. rpo_jax.run.records' Clock then counts, as train_seconds
+    and steps/s, what the test says each part took; rpo_jax.parallel.cluster's watch counts its rounds."""
+
+    TICK = 0.001
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        self.now += self.TICK
+        return self.now
+
+    monotonic = perf_counter
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(0.001)
+        self.now += seconds
+
+    def __getattr__(self, name: str):  # the rest of the time module, as it is
+        return getattr(time, name)
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ from rpo_jax import envs, ppo
 from rpo_jax.config import Config
 
 
-def test_brax_inverted_pendulum_trains_through_the_protocol():
+def test_brax_inverted_pendulum_updates_through_the_protocol_to_finite_metrics():
     env = envs.make_env("brax/inverted_pendulum")
     assert env.spec.name == "brax/inverted_pendulum" and env.spec.max_episode_steps == 1000
     assert (env.spec.observation_size, env.spec.action_size) == (4, 1)

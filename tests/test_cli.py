@@ -4,6 +4,7 @@ import json
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -11,11 +12,12 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from rpo_jax import envs, load_policy, ppo, train
+from rpo_jax import envs, experiment, load_policy, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.networks import policy_distribution
 from rpo_jax.report.compose import tail_mean as final_return
 from rpo_jax.run.chunks import chunk_length
+from rpo_jax.run import options
 from rpo_jax.run.directory import PARAMS_FILE
 
 TINY = [
@@ -168,17 +170,14 @@ def test_report_of_one_training_run_draws_its_curves(run_dir, tmp_path):
         assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"(figures/{name})" in text
 
 
-def test_a_plan_validates_its_config_once_and_a_direct_make_trainer_validates_too(tmp_path, monkeypatch):
+def test_a_plan_refuses_a_bad_config_before_writing_and_make_trainer_refuses_it_too(tmp_path):
     from rpo_jax.run import plan as plans
     from rpo_jax.run.options import RunSpec
 
-    validated = []
-    validate = Config.validate
-    monkeypatch.setattr(Config, "validate", lambda config: validated.append(config) or validate(config))
-    plan = plans.new_plan("cartpole", Config(), RunSpec(out=tmp_path / "run"))
-    plan.placement.make_trainer(plan.config, envs.make_env("cartpole"))
-    assert len(validated) == 1
     with pytest.raises(ValueError, match="num_envs"):  # UsageError
+        plans.new_plan("cartpole", Config(num_envs=0), RunSpec(out=tmp_path / "run"))
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match="num_envs"):
         ppo.make_trainer(Config(num_envs=0), envs.make_env("cartpole"))
 
 
@@ -190,3 +189,38 @@ def test_the_sweep_help_names_every_sweepable_hyperparameter(capsys):
     text = re.sub(r"[│|\s]+", " ", capsys.readouterr().out)
     sweep = text[text.index("--sweep STR") : text.index("--log-every")]
     assert all(name in sweep for name in SWEEPABLE), sweep
+
+
+def test_compile_cache_lives_under_the_user_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert options.compile_cache_dir() == tmp_path / "rpo_jax" / "jax"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert options.compile_cache_dir() == Path.home() / ".cache" / "rpo_jax" / "jax"
+
+
+ENTRY_POINTS = ("train", "evaluate", "experiment", "report", "envs", "export")
+
+
+@pytest.mark.parametrize("module", ENTRY_POINTS)
+def test_help_loads_no_jax(module):
+    check = (
+        "import runpy, sys\n"
+        f"sys.argv = ['{module}', '--help']\n"
+        "try:\n"
+        f"    runpy.run_module('rpo_jax.{module}', run_name='__main__', alter_sys=True)\n"
+        "except SystemExit as exit:\n"
+        "    assert exit.code in (0, None), exit.code\n"
+        "assert 'jax' not in sys.modules and 'mujoco' not in sys.modules\n"
+    )
+    result = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "usage" in result.stdout.lower()
+
+
+def test_experiment_help_lists_only_its_flags_with_the_values_its_jobs_use(capsys):
+    with pytest.raises(SystemExit):
+        experiment.main(["--help"])
+    text = capsys.readouterr().out
+    assert "--num-envs INT" in text and "(default: 1)" in text.split("--num-envs INT")[1].split("--")[0]
+    for train_only in ("--algo", "--sweep", "--coordinator", "--num-processes", "--process-id", "--distributed"):
+        assert f"{train_only} " not in text, train_only

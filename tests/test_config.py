@@ -76,3 +76,14 @@ def test_records_written_before_the_algorithm_table_still_load():
         old = {**record, "augmentation": augmentation, "rpo_alpha": alpha, "hidden_sizes": [64, 64]}
         config = Config.from_dict(old)
         assert config.algo == algo and config.hidden_sizes == (64, 64)
+
+
+def test_a_library_sweep_names_only_the_swept_fields_and_refuses_what_the_algorithm_does_not_read():
+    config = Config(algo="rpo", rpo_alpha=0.5, ent_coef=0.01)
+    hparams = Hyperparams.from_config(config, rpo_alpha=[0.1, 0.5, 1.0])
+    assert hparams.rpo_alpha.tolist() == pytest.approx([0.1, 0.5, 1.0])
+    assert hparams.ent_coef.tolist() == pytest.approx([0.01] * 3) and hparams.lr.shape == (3,)
+    with pytest.raises(UsageError, match="a sweep of rpo_alpha applies to --algo rpo only, not ppo"):
+        Hyperparams.from_config(Config(algo="ppo"), rpo_alpha=[0.1, 0.5])
+    with pytest.raises(UsageError, match="cannot sweep 'alpha': the sweepable hyperparameters are rpo_alpha, "):
+        Hyperparams.from_config(config, alpha=[0.1])

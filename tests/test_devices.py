@@ -90,7 +90,7 @@ def test_runs_split_over_devices_train_as_on_one_device(run_splits, split):
             np.testing.assert_allclose(a[name], b[name], rtol=1e-3, atol=1e-5, err_msg=name)
     summary = RunDir(run_splits / split).read_summary()
     assert summary["placement"] == "runs" and summary["devices"] == int(split[-1])
-    assert summary["padded_runs"] == 4 and len(summary["runs"]) == runs
+    assert summary["padding_runs"] == 4 - runs and len(summary["runs"]) == runs
 
 
 @pytest.mark.slow
@@ -152,7 +152,7 @@ def test_a_resumed_run_on_devices_ends_as_the_uninterrupted_one(tmp_path, flags)
     assert result == {"codes": [0, 0], "same_params": True, "same_rows": True, "rows": 4 * (3 if "3" in flags else 1)}
     if "--split-epochs" in flags:
         summary = RunDir(tmp_path / "resumed").read_summary()
-        assert (summary["placement"], summary["devices"], summary["padded_runs"]) == ("epochs", 3, 4)
+        assert (summary["placement"], summary["devices"], summary["padding_runs"]) == ("epochs", 3, 1)
 
 
 HOST = ["--env", "gym/BipedalWalker-v3"]  # Box2D simulators on the host
@@ -294,7 +294,7 @@ def test_cpu_devices_split_the_cpu_for_split_runs(tmp_path):
 
     cpu_devices_command(*TINY_COMMAND, "--num-seeds", "3", "--cpu-devices", "2", "--out", str(tmp_path / "split"))
     summary = RunDir(tmp_path / "split").read_summary()
-    assert (summary["placement"], summary["devices"], summary["padded_runs"], len(summary["runs"])) == ("runs", 2, 4, 3)
+    assert (summary["placement"], summary["devices"], summary["padding_runs"], len(summary["runs"])) == ("runs", 2, 1, 3)
 
 
 @pytest.mark.slow
@@ -307,7 +307,7 @@ def test_split_runs_resume_on_another_cpu_split(tmp_path):
     (out / "summary.json").unlink()  # as if killed after its last checkpoint
     cpu_devices_command("--resume", str(out), "--cpu-devices", "3", "--allow-relayout", "--quiet")
     summary = RunDir(out).read_summary()
-    assert (summary["placement"], summary["devices"], summary["padded_runs"], len(summary["runs"])) == ("runs", 3, 3, 3)
+    assert (summary["placement"], summary["devices"], summary["padding_runs"], len(summary["runs"])) == ("runs", 3, 0, 3)
 
 
 def test_cpu_devices_refused_once_jax_has_started(capsys, tmp_path):

@@ -208,7 +208,7 @@ def test_stepped_by_the_trainer_same_key_same_episodes_truncated_at_1000():
     np.testing.assert_array_equal(traj.obs, again.obs)
 
 
-def test_trains_two_seeds_from_the_command_line(tmp_path):
+def test_two_seeds_update_to_finite_metrics_from_the_command_line(tmp_path):
     pytest.importorskip("envpool")
     out = tmp_path / "run"
     result = subprocess.run(

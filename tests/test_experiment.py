@@ -16,10 +16,12 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, evaluate, experiment, load_policy, train
+from rpo_jax.experiment import Job, progress_line
 from rpo_jax.errors import UsageError
 from rpo_jax.report import compose
 from rpo_jax.run import chunks
 from rpo_jax.run import plan as plan_module
+from rpo_jax.run import video as drawn
 from rpo_jax.run.directory import CHECKPOINT_DIR, CONFIG_FILE, LOCK_FILE, METRICS_FILE, PARAMS_FILE, SUMMARY_FILE, TENSORBOARD_DIR
 from rpo_jax.run.options import Processes, RunSpec
 
@@ -99,7 +101,7 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
     assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
 
 
-@pytest.mark.slow  # 50 s; a run resuming exactly stays in test_reliability and test_user_envs
+@pytest.mark.slow  # 50 s; a run resuming exactly stays in test_resume and test_user_envs
 def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path):
     out = tmp_path / "ppo-vs-rpo"
     cmd = [*EXPERIMENT_CMD, "--out", str(out)]
@@ -217,7 +219,7 @@ def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
         assert len(err.splitlines()) == 1 and message in err, (argv, err)
 
 
-@pytest.mark.slow  # 18 s of learning; evaluate stays in test_user_envs and test_reliability
+@pytest.mark.slow  # 18 s of learning; evaluate stays in test_user_envs and test_evaluate
 def test_evaluation_of_trained_policies_beats_a_random_one(uninterrupted, capsys):
     env = envs.make_env("cartpole")
     key = jax.random.PRNGKey(7)
@@ -255,7 +257,7 @@ def test_evaluation_renders_a_video(uninterrupted, tmp_path):
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)  # reading starts ffmpeg too
         frames = imageio.mimread(video, memtest=False)
-    assert len(frames) > 10 and frames[0].shape == (360, 480, 3)
+    assert len(frames) > 10 and frames[0].shape == (drawn.HEIGHT, drawn.WIDTH, 3)
     assert np.ptp(np.asarray(frames[len(frames) // 2])) > 50  # something was drawn
     assert evaluate.main([str(job_dir(uninterrupted, "rpo")), "--video", str(video)]) == 2  # never overwritten
 
@@ -410,12 +412,11 @@ def test_an_experiment_parses_each_sweep_once_and_validates_each_config_once(tmp
     for job in jobs:
         plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name, grids["cartpole", job.name])
         assert len(plan.grid) == len(grids["cartpole", job.name])
-        plan.placement.make_trainer(plan.config, envs.make_env("cartpole"))
-    assert calls == checked  # planned and built without checking again
+    assert calls == checked  # planned without checking again
 
 
 def test_an_experiment_under_benchmarks_raw_is_kept_by_git_but_its_events_and_locks():
-    # A long experiment's runs outlast the machine only as commits (benchmarks/RESULTS.md, issue 27).
+    # A long experiment's runs outlast the machine only as commits (benchmarks/lab/notes/reference.md).
     root = Path(__file__).resolve().parent.parent
     if shutil.which("git") is None or not (root / ".git").exists():
         pytest.skip("not a git checkout")
@@ -429,3 +430,11 @@ def test_an_experiment_under_benchmarks_raw_is_kept_by_git_but_its_events_and_lo
             f"runs/any/{METRICS_FILE}"]  # fmt: skip
     ignored = subprocess.run(["git", "check-ignore", "--no-index", *kept, *left], cwd=root, capture_output=True, text=True)
     assert ignored.stdout.split() == left
+
+
+def test_experiment_progress_line_names_each_variant():
+    job = Job("ppo", "ppo", sweep=("ent_coef", (0.0, 0.5)))
+    summary = {"sps": 1234.0, "grid": [{"hparams": {"ent_coef": 0.0}, "final_return_mean": 467.9},
+                                       {"hparams": {"ent_coef": 0.5}, "final_return_mean": 4.5}]}  # fmt: skip
+    line = progress_line("[1/2] cartpole ppo", job, summary)
+    assert line == "[1/2] cartpole ppo: final return ppo ent_coef=0 467.90, ppo ent_coef=0.5 4.50, 1,234 steps/s"

@@ -66,7 +66,7 @@ def test_every_figure_is_written_as_png_and_pdf_the_same_bytes_each_time(tmp_pat
         compose.build(tmp_path, [tmp_path])
 
 
-def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(tmp_path, drawn):
+def test_bands_are_student_t_intervals_of_the_mean_and_the_legend_counts_seeds(tmp_path, drawn):
     finals = [100.0, 300.0, 350.0, 500.0, 420.0]
     fig = draw_curves(tmp_path, {"rpo": rows_of("rpo", "rpo", finals)}, drawn)
     band = next(child for child in fig.axes[0].get_children() if isinstance(child, PolyCollection))
@@ -76,17 +76,18 @@ def test_bands_are_bootstrap_intervals_of_the_mean_and_the_legend_counts_seeds(t
     for update, (lo, hi) in enumerate(zip(low, high), start=1):
         at_step = vertices[vertices[:, 0] == update * STEPS, 1]
         assert at_step.min() == pytest.approx(lo) and at_step.max() == pytest.approx(hi)
-    # Not the old band of one std: at the last update the interval is narrower than mean ± std.
-    mean, std = values[:, -1].mean(), values[:, -1].std()
-    assert mean - std < low[-1] < mean < high[-1] < mean + std
+    # Not a band of one std: at the last update, mean ± t(0.975, 4) x s / sqrt(5).
+    last = values[:, -1]
+    half = stats.t.ppf(0.975, 4) * last.std(ddof=1) / np.sqrt(5)
+    assert (low[-1], high[-1]) == pytest.approx((last.mean() - half, last.mean() + half))
     assert [text.get_text() for text in fig.axes[0].get_legend().get_texts()] == ["rpo (n=5)"]
-    assert any("95% bootstrap confidence interval of the mean" in text.get_text() for text in fig.texts)
+    assert any("95% Student t confidence interval of the mean" in text.get_text() for text in fig.texts)
 
 
-def test_too_few_seeds_for_an_interval_draw_the_seeds_instead_of_a_band(tmp_path, drawn):
-    fig = draw_curves(tmp_path, {"ppo": rows_of("ppo", "ppo", [100.0, 300.0, 500.0])}, drawn)
+def test_one_seed_draws_its_curve_without_a_band(tmp_path, drawn):
+    fig = draw_curves(tmp_path, {"ppo": rows_of("ppo", "ppo", [300.0])}, drawn)
     assert not any(isinstance(child, PolyCollection) for child in fig.axes[0].get_children())
-    assert len(fig.axes[0].get_lines()) == 1 + 3  # the mean and each seed
+    assert len(fig.axes[0].get_lines()) == 1
 
 
 def test_curves_leave_out_rows_that_only_repeat_and_those_before_every_seed_ended_an_episode(tmp_path, drawn):
@@ -145,12 +146,13 @@ def test_the_seeds_needed_follow_from_the_bootstrap():
 def test_statistics_too_few_seeds_cannot_estimate_are_shown_as_not_estimable(tmp_path):
     rows = rows_of("rpo", "rpo", [100.0, 150.0, 200.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 400.0])
     assert np.isnan(statistics.improvement_interval([np.array([0.1, 0.2, 0.3])], [np.array([0.6, 0.7, 0.8])])).all()
-    assert np.isnan(statistics.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(statistics.mean_interval(np.ones(3))).all()
+    assert np.isnan(statistics.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(statistics.mean_interval(np.ones(1))).all()
     compose.write_results(tmp_path, rows)
     text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "| rpo | ppo | 0.000 n/a (needs >= 4 seeds) |" in text and "0.000 [0.000, 0.000]" not in text
     assert "| rpo | n/a (needs >= 4 runs) |" in text  # the IQM of 3 runs would trim nothing
-    assert "| cartpole | 150.00 ± 50.00 n/a (needs >= 4 seeds) |" in text
+    half = stats.t.ppf(0.975, 2) * 50 / np.sqrt(3)  # a task's mean has its Student t interval from 2 seeds
+    assert f"| cartpole | 150.00 ± 50.00 [{150 - half:.2f}, {150 + half:.2f}] |" in text
     # With a fourth seed each, every statistic has its interval.
     more = rows + rows_of("rpo", "rpo", [0, 0, 0, 180.0])[3 * UPDATES :] + rows_of("ppo", "ppo", [0, 0, 0, 330.0])[3 * UPDATES :]
     compose.write_results(tmp_path, more)

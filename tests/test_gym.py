@@ -55,7 +55,7 @@ def test_pendulum_is_truncated_at_200_steps_with_rewards_in_range():
     assert (np.asarray(traj.reward) <= 0).all() and (np.asarray(traj.reward) >= -(np.pi**2 + 0.1 * 64 + 0.004)).all()
 
 
-def test_pendulum_trains():
+def test_pendulum_updates_to_finite_metrics():
     _, metrics = jax.jit(ppo.make_train(SMALL, envs.make_env("gym/Pendulum-v1")))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name
@@ -79,7 +79,7 @@ def test_bipedal_walker_steps_on_the_host():
 
 
 @pytest.mark.slow
-def test_bipedal_walker_trains():
+def test_bipedal_walker_updates_to_finite_metrics():
     pytest.importorskip("Box2D")
     _, metrics = jax.jit(ppo.make_train(SMALL, envs.make_env("gym/BipedalWalker-v3")))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():

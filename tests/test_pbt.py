@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from point_mass import PointMass
 
-from rpo_jax import diagnostics, envs, pbt, ppo
+from rpo_jax import diagnostics, envs, pbt, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
+from rpo_jax.run.plan import run_label
 
 MEMBERS = 8
 CONFIG = Config(algo="rpo", num_envs=4, num_steps=8, num_minibatches=2, update_epochs=1, total_timesteps=4 * 8 * 4)
@@ -165,3 +166,18 @@ def test_initial_hyperparameters_of_populations_are_each_their_first_seeds():
 def test_bad_fields_are_refused_in_one_line(text, message):
     with pytest.raises(UsageError, match=message):
         pbt.parse_fields(text, "rpo")
+
+
+def test_a_population_members_label_and_summary_name_its_population_and_what_it_explored(capsys):
+    hparams = [{"rpo_alpha": 0.1 * (index + 1), "ent_coef": 0.0} for index in range(4)]
+    runs = [{"run": index, "seed": 1 + index, "hparams": hparams[index], "final_return": -index} for index in range(4)]
+    assert [run_label(run, [], 2) for run in runs[1:3]] == ["population_0-seed_2", "population_1-seed_3"]
+    assert run_label(runs[1], []) == "seed_2"  # without population-based training
+    point = {"hparams": {}, "seeds": [1, 2, 3, 4], "final_return_mean": -1.5, "final_return_std": 1.29, "final_return_n": 4}
+    train.print_summary({
+        "env": "cartpole", "algo": "rpo", "grid": [point], "runs": runs, "best_member": 0, "best_members": [0, 2],
+        "sps": 1.0, "compile_seconds": 1.0, "out": "runs/x",
+    })  # fmt: skip
+    out = capsys.readouterr().out
+    assert "over 4 members of 2 population(s)" in out and "seed(s)" not in out
+    assert "best member: run 0 (seed 1), final return 0.00, now rpo_alpha=0.1\n" in out  # ent_coef was never explored

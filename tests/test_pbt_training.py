@@ -16,9 +16,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from point_mass import PointMass
+from point_mass import SPEC, PointMass, host_point_mass
 from test_devices import ROOT, params_of
-from test_host import SPEC, host_point_mass
 
 from rpo_jax import envs, experiment, export, pbt, train
 from rpo_jax.report import compose

@@ -42,7 +42,7 @@ def test_paper_tasks_without_a_port_are_only_the_quadrupeds():
     assert missing == {"quadruped-walk", "quadruped-run", "quadruped-escape"}
 
 
-def test_pendulum_swingup_trains_and_truncates_at_1000_steps():
+def test_pendulum_swingup_updates_to_finite_metrics_and_truncates_at_1000_steps():
     env = envs.make_env("mjx-dmc/pendulum-swingup")
     # 1,250 steps per environment: each of the 4 ends exactly one episode, by truncation.
     config = Config(num_envs=4, num_steps=250, num_minibatches=2, update_epochs=1, total_timesteps=4 * 250 * 5)

@@ -8,13 +8,19 @@ import json
 import sys
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from broken_envs import EndlessSimulators
+from point_mass import PointMass
+from point_mass_runs import TINY_FLAGS, TINY_FLAGS_ANY_ENV, one_line, test_envs
 
 import rpo_jax
 from rpo_jax import envs, evaluate, train
+from rpo_jax.envs import registry
 from rpo_jax.envs.__main__ import main as envs_main
 
+__all__ = ["test_envs"]  # point_mass_runs' fixture (test/point_mass registered), which pytest finds here by its name
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = "examples.goal_reach:make_env"
 TINY = [
@@ -185,3 +191,133 @@ def test_experiment_takes_import_paths_and_refuses_broken_ones(tmp_path, capsys)
     )
     assert experiment.main(["ppo-vs-rpo", "--envs", "examples.nowhere:make_env", "--out", str(tmp_path / "x")]) == 2
     assert "cannot import examples.nowhere" in capsys.readouterr().err
+
+
+FACTORIES = """
+import sys
+from point_mass import PointMass
+
+def runtime():
+    raise RuntimeError("simulator licence not found")
+
+def memory():
+    raise MemoryError
+
+def exits():
+    sys.exit(0)
+
+def ok():
+    return PointMass()
+"""
+
+
+@pytest.fixture
+def factories(tmp_path, monkeypatch) -> str:
+    """A module of users' factories on sys.path; its name, unique to the test."""
+    name = f"factories_{abs(hash(tmp_path)) % 10**8}"
+    (tmp_path / f"{name}.py").write_text(FACTORIES)
+    (tmp_path / f"{name}_broken.py").write_text('raise RuntimeError("boom at import")\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return name
+
+
+def check_command(path: str, out: Path) -> int:
+    return envs_main(["--check", path])
+
+
+def train_command(path: str, out: Path) -> int:
+    return train.main([*TINY_FLAGS, "--env", path, "--out", str(out)])
+
+
+@pytest.mark.parametrize("command", [train_command, check_command], ids=["train", "envs --check"])
+@pytest.mark.parametrize(
+    "path, message",
+    [
+        ("{m}:runtime", "env '{m}:runtime': its factory raised RuntimeError: simulator licence not found"),
+        ("{m}:memory", "env '{m}:memory': its factory raised MemoryError"),
+        ("{m}:exits", "env '{m}:exits': its factory raised SystemExit (exit code 0): it must return, not exit"),
+        ("{m}_broken:f", "env '{m}_broken:f': importing {m}_broken raised RuntimeError: boom at import"),
+        (".m:f", "env '.m:f': '.m' is not a module name; an import path is package.module:factory"),
+        ("..:f", "env '..:f': '..' is not a module name"),
+        ("gymnasium/../../etc:passwd", "env 'gymnasium/../../etc:passwd': '../../etc' is not a module name"),
+        ("a/b:f", "env 'a/b:f': 'a/b' is not a module name"),
+    ],
+)  # fmt: skip
+def test_failing_factories_and_escaping_import_paths_are_one_line(tmp_path, capsys, factories, command, path, message):
+    out = tmp_path / "out"
+    assert command(path.format(m=factories), out) == 2
+    line = one_line(capsys)
+    assert line.startswith("error: " + message.format(m=factories)), line
+    assert not out.exists()
+
+
+def test_a_working_factory_passes_the_check(capsys, factories):
+    assert check_command(f"{factories}:ok", Path()) == 0
+    assert capsys.readouterr().out.strip() == f"{factories}:ok: no problems found"
+
+
+def lying(spec: envs.EnvSpec):
+    """The point mass under another spec."""
+    return type("Lying", (PointMass,), {"spec": spec})
+
+
+def Unbuildable(num_envs: int, seed: int):
+    raise RuntimeError("no simulator here")
+
+
+class ShapeError(PointMass):
+    def step(self, state, action):
+        return super().step(state, jnp.concatenate([action, action]) @ jnp.ones((3,)))
+
+
+LIARS = {
+    "bounds": (lying(envs.EnvSpec("bounds", 2, 1, (1.0,), (-1.0,), 50, "jax")),
+               "spec.action_low (1.0,) is not below action_high (-1.0,) everywhere"),
+    "host": (lying(envs.EnvSpec("host", 2, 1, (-1.0,), (1.0,), 50, "host")),
+             "spec.backend is 'host', but the environment is a JAX one: the backend is 'host' exactly for host-side"),
+    "obs-size": (lying(envs.EnvSpec("obs-size", 3, 1, (-1.0,), (1.0,), 50, "jax")),
+                 "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
+    "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
+    "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+    # A host-side one: its program takes the spec's sizes on trust, so a simulator is reset for real.
+    "host-obs-size": (lambda: envs.HostEnv(envs.EnvSpec("host-obs-size", 3, 1, (-1.0,), (1.0,), 5, "host"), EndlessSimulators),
+                      "a reset on the host: obs has shape (1, 2), the spec needs (1, 3)"),
+    "host-raises": (lambda: envs.HostEnv(envs.EnvSpec("host-raises", 2, 1, (-1.0,), (1.0,), 5, "host"), Unbuildable),
+                    "a reset on the host: raised RuntimeError: no simulator here"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", LIARS)
+def test_train_refuses_an_environment_whose_spec_lies_before_compiling(tmp_path, capsys, monkeypatch, name):
+    factory, message = LIARS[name]
+    monkeypatch.setitem(registry._REGISTRY, f"test/liar-{name}", registry._Entry(factory, None))
+    out = tmp_path / "run"
+    code = train.main(["--env", f"test/liar-{name}", *TINY_FLAGS_ANY_ENV, "--out", str(out)])
+    if message is None:  # the point mass ignores a second action: nothing to see in a reset and a step
+        assert code == 0
+        return
+    assert code == 2
+    line = one_line(capsys)
+    assert line.startswith(f"error: --env test/liar-{name}: {message}"), line
+    assert line.endswith(f"; python -m rpo_jax.envs --check test/liar-{name} checks it in full"), line
+    assert not out.exists()
+
+
+class BranchesOnATracedValue(PointMass):
+    """A Python `if` on a traced value: what JAX refuses inside a jitted step."""
+
+    def step(self, state, action):
+        state, ts = super().step(state, action)
+        if ts.reward < 0:  # the line the error must name
+            return state, ts
+        return state, ts
+
+
+def test_a_python_branch_in_an_environment_is_named_by_its_file_and_line():
+    from rpo_jax.envs.check import first_step_problems
+
+    (problem,) = first_step_problems(BranchesOnATracedValue())
+    line = next(
+        number for number, text in enumerate(Path(__file__).read_text().splitlines(), 1) if "the line the error must name" in text
+    )
+    assert f"raised TracerBoolConversionError at {__file__}:{line}: " in problem

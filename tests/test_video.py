@@ -4,22 +4,25 @@ DeepMind Control through their own rendering) and the refusal of those that cann
 
 import dataclasses
 import json
-import time
 import weakref
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SteadyClock
 from point_mass import PointMass
-from test_host import SPEC as HOST_SPEC
-from test_host import PointMassSim, host_point_mass
-from test_tools import read_wandb_run
+from point_mass import SPEC as HOST_SPEC
+from point_mass import PointMassSim, host_point_mass
+from test_tracking import read_wandb_run
 
 from rpo_jax import envs, train
 from rpo_jax.envs.host import HostEnv
 from rpo_jax.report import compose
-from rpo_jax.run import chunks, video
+from rpo_jax.config import Config
+from rpo_jax.run import chunks, records, video
+from rpo_jax.run import plan as plans
+from rpo_jax.run.options import RunSpec
 
 TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
 
@@ -129,13 +132,13 @@ def test_a_recorded_cartpole_video_has_one_frame_per_state_of_each_episode(tmp_p
     push = lambda obs, key, deterministic: jnp.ones(obs.shape[:-1] + (1,))  # drives the cart off its rail
     episodes = video.record(env, push, 2, jax.random.PRNGKey(0), deterministic=True)
     assert len(episodes) == 2 and all(0 < episode.steps < env.spec.max_episode_steps for episode in episodes)
-    assert [episode.fps for episode in episodes] == [60.0, 60.0]
+    assert [episode.fps for episode in episodes] == [30.0, 30.0]  # 60 steps a second, every second one drawn
     # Frames are drawn as they are read, not held: an episode keeps its joint positions only.
     assert all(isinstance(episode.frames, video.DrawnFrames) for episode in episodes)
     assert np.array_equal(episodes[0].frames[-1], list(episodes[0].frames)[-1])
     video.write_mp4(tmp_path / "push.mp4", episodes)
     frames = read_frames(tmp_path / "push.mp4")
-    assert len(frames) == sum(episode.steps + 1 for episode in episodes)
+    assert len(frames) == sum(episode.steps // 2 + 1 for episode in episodes)
     assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["push.mp4"]  # no partial file left
 
@@ -192,11 +195,14 @@ def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
 
 
 def test_video_time_is_kept_out_of_training_time_and_steps_per_second(drawn_envs, tmp_path, monkeypatch):
+    # On the test's clock (SteadyClock): a reading takes 1 ms and a video's write 1 s, whatever the load.
+    clock = SteadyClock()
+    monkeypatch.setattr(records, "time", clock)
     written = video.write_mp4
 
     def slow_write(path, episodes):
         written(path, episodes)
-        time.sleep(1.0)
+        clock.sleep(1.0)
 
     monkeypatch.setattr(video, "write_mp4", slow_write)
     out = tmp_path / "slow"
@@ -218,11 +224,10 @@ def test_video_time_is_kept_out_of_training_time_and_steps_per_second(drawn_envs
     ],
 )  # fmt: skip
 def test_videos_that_cannot_be_made_are_refused_before_any_work(drawn_envs, tmp_path, capsys, monkeypatch, flags, message):
+    # Before any work: training never begins (no time limit, which a loaded machine could pass).
     monkeypatch.setattr(chunks, "compile_runs", lambda *args: pytest.fail("training began"))
-    started = time.perf_counter()
     # Without --quiet: the refusal comes before the progress display's first line.
     assert train.main([*TINY[:-1], *flags, "--out", str(tmp_path / "out")]) == 2
-    assert time.perf_counter() - started < 10
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(message)
     assert not (tmp_path / "out").exists()
@@ -330,3 +335,25 @@ def test_drawn_frames_draw_only_the_frames_read():
     assert frames[-1] == 9 and calls[-1] == (9, 10)
     assert frames[5:5] == [] and len(calls) == 2
     assert frames[::-3] == [9, 6, 3, 0] and list(frames) == list(range(10))
+
+
+@pytest.mark.parametrize(
+    "every, updates, chunk, due",
+    [
+        # every 10 updates of 100 in chunks of 4: the multiples' chunks, and the end 0 updates after 100's
+        (10, 100, 4, [12, 20, 32, 40, 52, 60, 72, 80, 92, 100]),
+        # every 10 of 103: the video of 100 at 100 is 3 updates before the end, so no second one
+        (10, 103, 4, [12, 20, 32, 40, 52, 60, 72, 80, 92, 100]),
+        # every 10 of 106: 6 updates past the last, over half an interval: the end draws too
+        (10, 106, 2, [10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 106]),
+        # a run shorter than one interval still ends with its video
+        (50, 8, 4, [8]),
+    ],
+)
+def test_videos_fall_at_each_interval_and_at_the_end_unless_one_was_just_drawn(tmp_path, every, updates, chunk, due):
+    config = Config(num_envs=8, num_steps=16, num_minibatches=2, total_timesteps=128 * updates)
+    plan = plans.new_plan("cartpole", config, RunSpec(out=tmp_path / "run", capture_video=True, capture_video_every=128 * every))
+    assert plan.video_updates == every and config.num_updates == updates
+    ends = [first + chunk for first in range(0, updates - chunk + 1, chunk)] + ([updates] if updates % chunk else [])
+    starts = [0, *ends[:-1]]
+    assert [end for first, end in zip(starts, ends) if plan.video_due(first, end - first)] == due

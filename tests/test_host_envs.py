@@ -1,6 +1,7 @@
-"""Host-side environments behind the batched protocol (rpo_jax.envs.host), the registry's listing
-and its errors for missing optional dependencies. Needs no optional dependency: the host
-simulator here is a few lines of numpy."""
+"""Host-side environments behind the batched protocol (rpo_jax.envs.host): stepping, resets, pools
+closed after training and evaluation, the registry's listing and its errors for missing optional
+dependencies. Needs no optional dependency: the host simulator (tests/point_mass.py) is a few
+lines of numpy. Several processes: test_processes.py."""
 
 from __future__ import annotations
 
@@ -14,40 +15,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import serialization
+from point_mass import EPISODE, SPEC, PointMassSim, host_point_mass
 
 from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.envs import MissingExtraError
 from rpo_jax.envs.host import BatchedHostEnv, HostEnv, PoolShare, SequentialSimulators
 
-EPISODE = 5
-SPEC = envs.EnvSpec("host_point_mass", 2, 1, (-1.0,), (1.0,), EPISODE, "host")
-
-
-class PointMassSim:
-    """A point mass on a line, one simulator in Gymnasium's reset/step style: the episode is
-    truncated after EPISODE steps; reward -position^2."""
-
-    def __init__(self, index: int, seed: int) -> None:
-        self.rng = np.random.default_rng([seed, index])
-
-    def reset(self) -> np.ndarray:
-        self.state, self.t = self.rng.uniform(-1, 1, 2), 0
-        return self.state.copy()
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        velocity = self.state[1] + 0.1 * float(action[0])
-        self.state, self.t = np.array([self.state[0] + 0.1 * velocity, velocity]), self.t + 1
-        return self.state.copy(), -(self.state[0] ** 2), False, self.t >= EPISODE
-
-
-def host_point_mass() -> HostEnv:
-    return HostEnv(
-        SPEC,
-        lambda num_envs, seed: SequentialSimulators(
-            num_envs, seed, PointMassSim, lambda sim: sim.reset(), lambda sim, action: sim.step(action)
-        ),
-    )
+TINY = ["--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1", "--quiet"]
 
 
 def rollout(env, key, actions):
@@ -176,7 +151,7 @@ def test_runs_vmapped_over_seeds_each_step_their_own_simulators():
     assert not np.array_equal(traj.obs[0], traj.obs[1])
 
 
-def test_trains_on_a_host_env():
+def test_updates_on_a_host_env_to_finite_metrics():
     config = Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
     _, metrics = jax.jit(ppo.make_train(config, host_point_mass()))(jax.random.PRNGKey(0))
     for name, value in vars(metrics).items():
@@ -209,16 +184,17 @@ def test_resumed_host_run_restarts_its_episodes_and_keeps_its_statistics(isolate
 
 def test_missing_extra_is_a_one_line_value_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "envpool", None)  # makes `import envpool` fail
-    with pytest.raises(ValueError, match=r"pip install -e '\.\[dmc\]'") as error:
+    with pytest.raises(ValueError, match=r"pip install '\.\[dmc\]'") as error:
         envs.make_env("dmc/walker-walk")
     assert isinstance(error.value, MissingExtraError) and "\n" not in str(error.value)
 
 
 def test_train_without_the_extra_exits_2_with_one_line(monkeypatch, tmp_path, capsys):
     monkeypatch.setitem(sys.modules, "envpool", None)
-    assert train.main(["--env", "dmc/walker-walk", "--quiet", "--out", str(tmp_path / "run")]) == 2
+    # Without --quiet: refused before the progress display says it compiles.
+    assert train.main(["--env", "dmc/walker-walk", "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip()
-    assert err == "error: env 'dmc/walker-walk' needs envpool, which is not installed: pip install -e '.[dmc]'"
+    assert err == "error: env 'dmc/walker-walk' needs envpool, which is not installed: pip install '.[dmc]'"
     assert not (tmp_path / "run").exists()
 
 
@@ -247,6 +223,23 @@ def test_evaluation_runs_on_a_host_env():
     returns = evaluate.episode_returns(host_point_mass(), zero_policy, 3, jax.random.PRNGKey(0), True)
     # Five steps each, reward -position^2 from a start in (-1, 1)^2.
     assert returns.shape == (3,) and np.all(returns <= 0) and np.all(returns > -EPISODE * 2)
+
+
+def test_training_and_every_evaluation_close_the_simulators_they_built(isolated_registry, tmp_path):
+    open_pools = {}  # pool -> its size, while open
+
+    def counted(num_envs, seed):
+        pool = host_point_mass().make_simulators(num_envs, seed)
+        open_pools[id(pool)] = num_envs
+        close = pool.close
+        pool.close = lambda: (open_pools.pop(id(pool)), close())
+        return pool
+
+    envs.register_env("counted_point_mass", lambda: envs.HostEnv(SPEC, counted), SPEC)
+    argv = ["--env", "counted_point_mass", *TINY, "--total-timesteps", "768", "--num-seeds", "2"]
+    assert train.main([*argv, "--eval-every", "256", "--eval-episodes", "3", "--out", str(tmp_path / "run")]) == 0
+    # Three evaluations of two runs built six pools of 3, and training two of 8: none is left open.
+    assert open_pools == {}
 
 
 class SplitStepPool(SequentialSimulators):

