@@ -24,6 +24,11 @@ $(VENV)/.core: $(VENV)/.created pyproject.toml
 $(VENV)/.dev: $(VENV)/.created pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	$(PY) -m pip check
+	touch $@ $(VENV)/.core $(VENV)/.docs
+
+# The docs need the core (the flag reference is read from its dataclasses) and the docs extra alone.
+$(VENV)/.docs: $(VENV)/.created pyproject.toml
+	$(PY) -m pip install --quiet -e '.[docs]'
 	touch $@ $(VENV)/.core
 
 train: $(VENV)/.core
@@ -35,11 +40,11 @@ lint: $(VENV)/.dev
 	$(VENV)/bin/lint-imports
 
 # The site in site/, strict: a warning, a broken link or anchor fails the build.
-docs: $(VENV)/.dev
+docs: $(VENV)/.docs
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
 
 # The site at http://127.0.0.1:8000, rebuilt as the pages change.
-docs-serve: $(VENV)/.dev
+docs-serve: $(VENV)/.docs
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs serve
 
 test: lint docs

@@ -8,7 +8,8 @@
   the static specs that `python -m rpo_jax.envs` lists.
 - `reports/<name>/report.md` (with its figures) for every committed report under
   benchmarks/reports/, as `python -m rpo_jax.report` wrote it, and the nav's "Reports" section
-  listing them, so a new report needs no edit of mkdocs.yml.
+  listing them under readable names (`REPORT_NAMES`, else the report's title line), so a new
+  report needs no edit of mkdocs.yml.
 - `benchmarks/<topic>.md`: benchmarks/RESULTS.md's sections (the standing results), grouped by
   topic; `benchmarks/scripts.md`: benchmarks/README.md, each standing script's entry, where
   `<!-- help: SCRIPT -->` becomes what `benchmarks/SCRIPT --help` prints; and the nav's
@@ -122,10 +123,9 @@ def cli_reference() -> str:
 
 
 def env_table() -> str:
-    from rpo_jax.envs.__main__ import EXTRAS
-    from rpo_jax.envs.registry import env_names, env_spec
+    from rpo_jax.envs.registry import EXTRAS, env_names, env_spec
 
-    extra_of = {prefix.strip(): extra for extra, (prefixes, _) in EXTRAS.items() for prefix in prefixes.split(",")}
+    extra_of = {prefix: extra for extra, (prefixes, _) in EXTRAS.items() for prefix in prefixes}
     suites: dict[str, list[str]] = {}
     for name in env_names():
         suites.setdefault(name.partition("/")[0] if "/" in name else "isaacgym", []).append(name)
@@ -200,9 +200,48 @@ def benchmark_pages() -> dict[str, str]:
     return pages
 
 
+# The Reports menu's entries: a few words per committed report (its directory's name is a slug), in
+# the order of the Experiments page; a report not named here is listed after them under its title line's words.
+REPORT_NAMES = {
+    "entropy-reg-cartpole": "Cartpole: entropy bonus against RPO",
+    "distributions-cartpole": "Cartpole: three distributions",
+    "data-aug-cartpole": "Cartpole: data augmentation",
+    "alpha-ablation-cartpole": "Cartpole: RPO's alpha",
+    "ppo-vs-rpo-gym": "PPO against RPO on Gym",
+    "long-horizon-cartpole": "Cartpole over 100M steps",
+    "long-horizon-ballbalance": "BallBalance over 100M steps",
+    "truncation-gym": "Time limits on Gym",
+    "truncation-dmc": "Time limits on DeepMind Control",
+    "reference-8m-terminate": "Published reference, 8M steps",
+    "reference-8m-handling": "Published reference: time-limit handling",
+    "walker-stand-1env-8m-terminate": "Walker stand, one environment, 5 seeds",
+    "walker-stand-1env-8m-terminate-10-seeds": "Walker stand, one environment, 10 seeds",
+    "walker-run-1env-8m-terminate": "Walker run, one environment, 5 seeds",
+    "walker-run-1env-8m-terminate-10-seeds": "Walker run, one environment, 10 seeds",
+    "acrobot-1env-8m-terminate": "Acrobot swing-up, one environment",
+    "pendulum-1env-8m-terminate": "Pendulum PPO, one environment",
+    "pendulum-1env-rpo-8m-terminate": "Pendulum RPO, one environment",
+    "pbt-alpha": "Population-based training of alpha",
+}
+
+
 def reports() -> list[Path]:
     """The committed reports, benchmarks/reports/<name>/report.md, by name."""
     return sorted(REPORTS.glob("*/report.md"))
+
+
+def report_name(report: Path) -> str:
+    """The Reports menu's entry for `report`: REPORT_NAMES's, else its title line without "Report: "."""
+    if report.parent.name in REPORT_NAMES:
+        return REPORT_NAMES[report.parent.name]
+    title = report.read_text().partition("\n")[0].removeprefix("#").strip()
+    return title.removeprefix("Report:").strip() or report.parent.name
+
+
+def menu_reports() -> list[Path]:
+    """The committed reports in the menu's order: REPORT_NAMES's, then the others by name."""
+    order = {name: index for index, name in enumerate(REPORT_NAMES)}
+    return sorted(reports(), key=lambda report: (order.get(report.parent.name, len(order)), report.parent.name))
 
 
 def on_config(config):
@@ -210,7 +249,7 @@ def on_config(config):
     committed report, and the benchmarks' index, scripts and topic pages."""
     topics = [topic for topic, sections in results_sections()[1].items() if sections]
     fill_section(config["nav"] or [], "Benchmarks", [f"benchmarks/{page}.md" for page in ("index", "scripts", *topics)])
-    pages = [{report.parent.name: f"reports/{report.parent.name}/report.md"} for report in reports()]
+    pages = [{report_name(report): f"reports/{report.parent.name}/report.md"} for report in menu_reports()]
     fill_section(config["nav"] or [], "Reports", pages)
     return config
 
