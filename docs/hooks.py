@@ -48,7 +48,7 @@ DEFAULT = re.compile(r"(.*?)(?:\s*\((?:default: (.*)|required)\))?\s*$", re.DOTA
 TOPICS = {
     "speed": ("Speed", ("Throughput", "Seeds in one program", "Against Brax", "Start-up", "Costs")),
     "devices": ("Devices and GPUs", ("Several devices", "GPU")),
-    "learning": ("Learning", ("Learning", "published reference")),
+    "learning": ("Learning", ("Learning", "published reference", "Intervals")),
     "installing": ("Installing and testing", ("Test-suite",)),
     "other": ("Other measurements", ()),
 }
