@@ -11,7 +11,7 @@ from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Con
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import Hyperparams, read_by
 from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS
-from rpo_jax.report import compose
+from rpo_jax.report import results
 
 
 def test_the_library_and_the_command_line_share_one_default():
@@ -43,7 +43,7 @@ def test_declared_choices_are_the_implemented_ones():
 def test_the_sweepable_hyperparameters_are_declared_once():
     # Hyperparams' fields are the declaration; the lists of them derive from it.
     assert SWEEPABLE == tuple(field.name for field in dataclasses.fields(Hyperparams))
-    assert compose.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
+    assert results.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
     for name in SWEEPABLE:
         assert isinstance(getattr(Config(), name), float), name  # its default is Config's field
         assert set(read_by(name)) <= set(ALGORITHMS), name
@@ -57,7 +57,7 @@ def test_the_sweepable_hyperparameters_are_declared_once():
 
 
 def test_results_columns_are_the_trainers_metrics():
-    assert compose.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
+    assert results.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
 
 
 @pytest.mark.parametrize(

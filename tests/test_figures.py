@@ -8,6 +8,7 @@ from matplotlib.collections import PolyCollection
 from scipy import stats
 
 from rpo_jax.report import compose, figures, statistics
+from rpo_jax.report import results
 
 UPDATES = 8
 STEPS = 250_000  # per update: ticks fall on 500k, 1M, 1.5M, 2M
@@ -20,7 +21,7 @@ def rows_of(variant: str, algo: str, finals: list[float], unfinished: frozenset 
     rows = []
     for index, final in enumerate(finals):
         for update in range(1, UPDATES + 1):
-            row = dict.fromkeys(compose.COLUMNS, 0.0)
+            row = dict.fromkeys(results.COLUMNS, 0.0)
             row.update(experiment="x", env="cartpole", variant=variant, algo=algo, dist="gaussian", seed=float(index + 1))
             finished = (index, update) not in unfinished
             row.update(update=float(update), env_steps=float(update * STEPS), episodes_finished=4.0 * finished)
@@ -48,7 +49,7 @@ def draw_curves(tmp_path, series_rows: dict[str, list[dict]], drawn: list) -> pl
 
 def test_every_figure_is_written_as_png_and_pdf_the_same_bytes_each_time(tmp_path):
     rows = rows_of("rpo", "rpo", [400.0, 450.0, 500.0, 480.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 200.0, 250.0])
-    compose.write_results(tmp_path, rows)
+    results.write_results(tmp_path, rows)
     text = compose.build(tmp_path, [tmp_path]).read_text()
     names = ("cartpole-curves", "normalized-scores", "performance-profile", "perturbed-gaussian")
     first = {}
@@ -147,7 +148,7 @@ def test_statistics_too_few_seeds_cannot_estimate_are_shown_as_not_estimable(tmp
     rows = rows_of("rpo", "rpo", [100.0, 150.0, 200.0]) + rows_of("ppo", "ppo", [300.0, 350.0, 400.0])
     assert np.isnan(statistics.improvement_interval([np.array([0.1, 0.2, 0.3])], [np.array([0.6, 0.7, 0.8])])).all()
     assert np.isnan(statistics.iqm(np.array([0.1, 0.2, 0.3]))) and np.isnan(statistics.mean_interval(np.ones(1))).all()
-    compose.write_results(tmp_path, rows)
+    results.write_results(tmp_path, rows)
     text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "| rpo | ppo | 0.000 n/a (needs >= 4 seeds) |" in text and "0.000 [0.000, 0.000]" not in text
     assert "| rpo | n/a (needs >= 4 runs) |" in text  # the IQM of 3 runs would trim nothing
@@ -155,5 +156,5 @@ def test_statistics_too_few_seeds_cannot_estimate_are_shown_as_not_estimable(tmp
     assert f"| cartpole | 150.00 ± 50.00 [{150 - half:.2f}, {150 + half:.2f}] |" in text
     # With a fourth seed each, every statistic has its interval.
     more = rows + rows_of("rpo", "rpo", [0, 0, 0, 180.0])[3 * UPDATES :] + rows_of("ppo", "ppo", [0, 0, 0, 330.0])[3 * UPDATES :]
-    compose.write_results(tmp_path, more)
+    results.write_results(tmp_path, more)
     assert "n/a (needs" not in compose.build(tmp_path, [tmp_path]).read_text()

@@ -8,6 +8,7 @@ import pytest
 from test_report_statistics import rows_of
 
 from rpo_jax.report import compose, populations
+from rpo_jax.report import results
 from rpo_jax.run import population
 
 JOBS = [
@@ -28,14 +29,14 @@ MEMBER_FINALS = [100.0 * (member + 1) + 10.0 * population for population in rang
 def population_rows() -> list[dict]:
     rows = rows_of("ppo", "ppo", {"cartpole": [250.0] * 4}) + rows_of("pbt", "rpo", {"cartpole": MEMBER_FINALS})
     for row in rows:  # not evaluated; each member's alpha halves at every update, its lr stays its own
-        del row[compose.EVAL_COLUMN]
+        del row[results.EVAL_COLUMN]
         row.update(rpo_alpha=0.5 ** row["update"], lr=1e-4 * row["seed"])
     return rows
 
 
 def experiment(directory, rows, jobs):
     directory.mkdir(parents=True)
-    compose.write_results(directory, rows)
+    results.write_results(directory, rows)
     (directory / "experiment.json").write_text(json.dumps({"experiment": "x", "jobs": jobs}))
     return compose.build(directory, [directory]).read_text()
 
@@ -94,6 +95,6 @@ def test_an_experiment_without_populations_reports_as_before(tmp_path):
     rows = rows_of("ppo", "ppo", {"cartpole": [250.0, 200.0, 100.0, 50.0]})
     plain = tmp_path / "plain" / "x"
     plain.mkdir(parents=True)
-    compose.write_results(plain, rows)
+    results.write_results(plain, rows)
     without = compose.build(plain, [plain]).read_text()
     assert experiment(tmp_path / "jobs" / "x", rows, JOBS[:1]).replace(str(tmp_path / "jobs"), str(tmp_path / "plain")) == without

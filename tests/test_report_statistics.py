@@ -9,6 +9,7 @@ import pytest
 from scipy import stats
 
 from rpo_jax.report import compose, statistics
+from rpo_jax.report import results
 
 RPO = {"dmc/walker-walk": [100.0, 200.0, 300.0, 400.0], "cartpole": [50.0, 100.0, 150.0, 200.0]}
 PPO = {"dmc/walker-walk": [0.0, 0.0, 100.0, 100.0], "cartpole": [0.0, 0.0, 50.0, 50.0]}
@@ -20,7 +21,7 @@ def rows_of(variant: str, algo: str, finals: dict[str, list[float]], updates: in
     for env, values in finals.items():
         for seed, value in enumerate(values, start=1):
             for update in range(1, updates + 1):
-                row = dict.fromkeys(compose.COLUMNS, 0.0)
+                row = dict.fromkeys(results.COLUMNS, 0.0)
                 row.update(experiment="x", env=env, variant=variant, algo=algo, dist="gaussian", seed=float(seed))
                 row.update(update=float(update), env_steps=float(update * 100), episode_return=value, policy_entropy=1.0)
                 row.update(episodes_finished=1.0, episode_length=10.0)  # an episode ended in every update
@@ -94,7 +95,7 @@ def test_one_seed_has_no_interval():
 
 def test_the_report_carries_every_statistic(table, tmp_path):
     rows, _, _ = table
-    compose.write_results(tmp_path, rows)
+    results.write_results(tmp_path, rows)
     text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "| rpo | 0.250 [" in text and "| 2 | 8 |" in text  # IQM, environments and runs
     assert "| rpo | ppo | 0.938 [" in text  # probability of improvement
@@ -112,7 +113,7 @@ def built_with_reference(table, tmp_path: Path, reference_csv: str, out: Path | 
     """The report of `table`'s rows in tmp_path/exp, written to `out` (default: that directory),
     beside the published figures of `reference_csv` in tmp_path/ref.csv."""
     (tmp_path / "exp").mkdir()
-    compose.write_results(tmp_path / "exp", table[0])
+    results.write_results(tmp_path / "exp", table[0])
     (tmp_path / "ref.csv").write_text(reference_csv)
     return compose.build(out or tmp_path / "exp", [tmp_path / "exp"], tmp_path / "ref.csv")
 
@@ -189,7 +190,7 @@ def test_a_bad_reference_table_is_one_line(tmp_path, contents, named):
 
 
 def test_a_report_of_environments_without_a_score_range_has_no_empty_table(tmp_path):
-    compose.write_results(tmp_path, rows_of("rpo", "rpo", {"test/point_mass": [1.0, 2.0, 3.0, 4.0]}))
+    results.write_results(tmp_path, rows_of("rpo", "rpo", {"test/point_mass": [1.0, 2.0, 3.0, 4.0]}))
     text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "No score across environments: none of test/point_mass has a fixed range." in text
     assert "| env | low | high | from |" not in text

@@ -7,7 +7,7 @@
 
 Reads each directory's results.csv (written by `rpo_jax.experiment`) and writes report.md and
 figures/ (PNG, and PDF beside each): per environment and variant the final return with its sample std and a 95%
-bootstrap confidence interval over seeds; across environments the interquartile mean of
+Student t confidence interval over seeds; across environments the interquartile mean of
 normalised scores and the probability that RPO improves on each baseline, with stratified
 bootstrap intervals (`rpo_jax.report.statistics`); learning curves, interval bars, a performance
 profile and the paper's Figure 1 (left). With several directories, variants are prefixed by
@@ -20,9 +20,7 @@ overlay as experiments do.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 import shlex
 import sys
@@ -34,63 +32,19 @@ import numpy as np
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.hyperparams import SWEEPABLE
 from rpo_jax.report import figures, populations, reference, statistics, tables
 from rpo_jax.run.directory import (
     CHECKPOINT_DIR, CONFIG_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LINEAGE_FILE, LOCK_FILE, METRICS_FILE,
     PARAMS_FILE, RESULTS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, VIDEOS_DIR, WANDB_DIR, RunDir, env_directory,
 )  # fmt: skip
 from rpo_jax.run.files import write_text
+from rpo_jax.report.results import EVAL_COLUMN, read_results
 from rpo_jax.run.options import parse
-from rpo_jax.scores import kept_fraction, sample_std, tail_mean
+from rpo_jax.scores import final_return, kept_fraction, row_returns, sample_std, tail_mean
 
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
 REPORT_TITLE = "# Report: "  # report.md's first line starts so: how check_out knows its own file
-ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
-# A logged row's update and `ppo.Metrics`' fields in order: typed out (this module loads no JAX), pinned by a test.
-METRIC_COLUMNS = (
-    "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
-    "policy_loss", "value_loss", "approx_kl", "clip_fraction", "action_std", "learning_rate",
-)  # fmt: skip
-# The deterministic policy's return on fresh episodes, in the rows of runs evaluated during
-# training (--eval-every); empty elsewhere, and absent from results written before it existed.
-EVAL_COLUMN = "eval_return"
-COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
-TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
-
-
-def write_results(out: Path, rows: Iterable[dict]) -> None:
-    """results.csv through a temporary file, so a crash never leaves half of it."""
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", restval="")
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text(out / RESULTS_FILE, buffer.getvalue())
-
-
-def read_results(directory: Path) -> list[dict]:
-    path = directory / RESULTS_FILE
-    if not path.is_file():
-        raise UsageError(f"{directory} has no {RESULTS_FILE}; give a directory written by rpo_jax.experiment")
-    with open(path, newline="") as file:
-        reader = csv.DictReader(file)
-        missing = [name for name in ID_COLUMNS + METRIC_COLUMNS if name not in (reader.fieldnames or ())]
-        if missing:
-            raise UsageError(f"{path}: column(s) {', '.join(missing)} missing; rpo_jax.experiment writes {', '.join(COLUMNS)}")
-        rows = list(reader)
-    for line, row in enumerate(rows, start=2):
-        if not row.get(EVAL_COLUMN):
-            row.pop(EVAL_COLUMN, None)
-        for name in (*ID_COLUMNS, *METRIC_COLUMNS, *([EVAL_COLUMN] if EVAL_COLUMN in row else [])):
-            if name not in TEXT_COLUMNS:
-                try:
-                    row[name] = float(row[name])
-                except (TypeError, ValueError):  # TypeError: a short row's cell is None
-                    raise UsageError(f"{path}: line {line}: {name} must be a number, got {row[name]!r}") from None
-    return rows
-
-
 # What the report may find in --out besides its own files: an experiment's (report.md goes
 # next to the results it was made from), a training run's (a run's report goes into its
 # directory), and the lock of a run writing there.
@@ -122,6 +76,12 @@ def check_out(out: Path, allowed: Sequence[str] = EXPERIMENT_FILES) -> None:
         )
 
 
+def is_among(out: Path, directories: Sequence[Path]) -> bool:
+    """Whether `out` is one of the `directories` reported: only there may the report go beside
+    their files (another experiment's or run's report.md and figures are not its to overwrite)."""
+    return any(out.resolve() == directory.resolve() for directory in directories)
+
+
 def unique(values: Iterable[str]) -> list[str]:
     return list(dict.fromkeys(values))
 
@@ -137,10 +97,29 @@ def group_runs(rows: Sequence[dict]) -> dict[tuple[str, str], dict[float, list[d
     return runs
 
 
+def _title(experiments: Sequence[str], variants: Sequence[str], envs: Sequence[str], published: dict | None) -> str:
+    """What the report compares: its variants, on what, from which experiments."""
+    if not experiments:
+        return "no finished runs"
+    on = envs[0] if len(envs) == 1 else f"{len(envs)} environments"
+    beside = ", beside a published reference" if published else ""
+    compared = " vs ".join(variants) if len(variants) <= 3 else f"{len(variants)} variants"
+    return f"{compared} on {on}{beside} ({', '.join(experiments)} experiment)"
+
+
 def _spread(values: np.ndarray) -> dict[str, float]:
-    """Mean, sample std (NaN for one seed) and the 95% bootstrap interval of the mean."""
+    """Mean, sample std (NaN for one seed) and the 95% Student t interval of the mean."""
+    values = values[~np.isnan(values)]  # a run in which no episode ended has no return
+    if not len(values):
+        return {"mean": math.nan, "std": math.nan, "low": math.nan, "high": math.nan, "n": 0}
     low, high = statistics.mean_interval(values)
-    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high}
+    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high, "n": len(values)}
+
+
+def _final_return(run: Sequence[dict]) -> float:
+    """A run's final return (`scores.final_return`); NaN where no episode ended in it."""
+    final = final_return(row_returns(run))
+    return math.nan if final is None else final
 
 
 def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
@@ -148,7 +127,7 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
     (mean, sample std, 95% interval), the seed count, steps and late-training fractions."""
     summary = {}
     for key, seeds in group_runs(rows).items():
-        finals = np.array([tail_mean([row["episode_return"] for row in run]) for run in seeds.values()])
+        finals = np.array([_final_return(run) for run in seeds.values()])
         entropies = np.array([tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()])
         length = min(len(run) for run in seeds.values())
         mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
@@ -157,7 +136,7 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
         evaluated = _spread(np.array([run[-1] for run in evaluations])) if all(evaluations) else {}
         summary[key] = {
             **{f"eval_{name}": value for name, value in evaluated.items()},
-            "finals": finals,
+            "finals": finals[~np.isnan(finals)],  # a run without a return counts in no score
             **{f"return_{name}": value for name, value in returns.items()},
             **{f"entropy_{name}": value for name, value in entropy.items()},
             "seeds": len(seeds),
@@ -177,7 +156,7 @@ def normalised_scores(summary: dict[tuple[str, str], dict]) -> dict[tuple[str, s
     scores = {}
     for (env, variant), stats in summary.items():
         normalised = statistics.normalise(env, stats["finals"])
-        if normalised is not None:
+        if normalised is not None and len(normalised):  # none where no run had a return
             scores[env, variant] = normalised
     return scores
 
@@ -277,7 +256,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     seeds joined), beside the published figures in `reference_file` where given."""
     published = reference.read(reference_file) if reference_file else {}
     rows, jobs = read_directories(directories, pool)
-    check_out(out)
+    check_out(out, EXPERIMENT_FILES if is_among(out, directories) else (LOCK_FILE,))
     out.mkdir(parents=True, exist_ok=True)
     members = group_runs(rows) if jobs else {}  # a population job's runs, before they become populations
     rows = populations.replicate_rows(rows, members, jobs)
@@ -293,7 +272,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
     seeds = sorted({s["seeds"] for s in summary.values()})
     steps = sorted({s["env_steps"] for s in summary.values()})
     lines = [
-        f"{REPORT_TITLE}{', '.join(experiments) or 'no finished runs'}",
+        f"{REPORT_TITLE}{_title(experiments, variants, envs, published)}",
         "",
         f"Made by `{_command(directories, out, reference_file, pool)}` from results.csv "
         f"({len(envs)} environment(s), {len(variants)} variant(s), {'/'.join(map(str, seeds))} "
@@ -312,7 +291,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
 
 
 def _final_returns(runs: list[list[dict]]) -> dict:
-    spread = _spread(np.array([tail_mean([row["episode_return"] for row in run]) for run in runs]))
+    spread = _spread(np.array([_final_return(run) for run in runs]))
     return {**{f"return_{name}": value for name, value in spread.items()}, "seeds": len(runs)}
 
 
@@ -354,7 +333,8 @@ def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None)
     by the run directory's name where several overlay; a population's points are its best member
     and its members' mean, one run per population, beside `pbt_report`'s section and figures.
     `holder`: the directory that holds them, as the command named it (`out` may hold them too)."""
-    check_out(out, (*RUN_FILES, *(run_dir.path.name for run_dir in run_dirs if holder)))
+    own = RUN_FILES if is_among(out, [run_dir.path for run_dir in run_dirs]) else (LOCK_FILE,)
+    check_out(out, (*own, *(run_dir.path.name for run_dir in run_dirs if holder and is_among(out, [holder]))))
     records = [run_dir.read_config() for run_dir in run_dirs]
     envs, names = unique(record["env"] for record in records), [run_dir.path.name for run_dir in run_dirs]
     if len(set(names)) < len(names):

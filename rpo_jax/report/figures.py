@@ -1,7 +1,7 @@
 """The report's figures, drawn with matplotlib without a display, each as PNG and as PDF beside
-it (for a paper). Every chart shows its spread: 95% bootstrap confidence intervals of the mean over
-seeds as bands on curves and as error bars on bars (`rpo_jax.report.statistics`), the seeds themselves
-where they are too few for an interval, and the number of runs behind each curve or bar."""
+it (for a paper). Every chart shows its spread: 95% Student t confidence intervals of the mean over
+seeds as bands on curves and as error bars on bars (`rpo_jax.report.statistics`), and the number of
+runs behind each curve or bar."""
 
 from __future__ import annotations
 
@@ -22,10 +22,9 @@ EPISODE_METRICS = ("episode_return", "episode_length")
 # are shades of FAMILIES[k].
 FAMILIES = ("Blues", "Oranges", "Greens", "Purples", "Reds", "Greys")
 CURVES_CAPTION = (
-    "Lines: mean over seeds (n seeds per curve in the legend); bands: {confidence:.0%} bootstrap confidence "
-    "interval of the mean ({resamples} resamples); thin lines: the single seeds, where too few (< {needed}) for "
-    "an interval. Return and length: each seed's most recent episodes, at the logged updates where some seed's "
-    "ended since its previous logged update."
+    "Lines: mean over seeds (n seeds per curve in the legend); bands: {confidence:.0%} Student t confidence "
+    "interval of the mean (none for one seed). Return and length: each seed's most recent episodes, at the "
+    "logged updates where some seed's ended since its previous logged update."
 )
 
 
@@ -94,15 +93,12 @@ def finished_points(runs: list[list[dict]], metric: str) -> tuple[np.ndarray, np
 
 
 def _draw_series(axis: Any, runs: list[list[dict]], metric: str, colour: Any, label: str) -> None:
-    """The mean over runs with its bootstrap band, or with the single runs where too few."""
+    """The mean over runs with its confidence band (none for one run, its own mean)."""
     steps, values = finished_points(runs, metric)
     axis.plot(steps, values.mean(axis=0), color=colour, label=f"{label} (n={len(runs)})", linewidth=1.5)
     low, high = statistics.mean_intervals(values)
     if len(low) and not math.isnan(low[0]):
         axis.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
-    elif len(values) > 1:  # one seed is its own mean
-        for seed in values:
-            axis.plot(steps, seed, color=colour, linewidth=0.6, alpha=0.45)
 
 
 def curves(
@@ -114,7 +110,7 @@ def curves(
     marks: dict[str, float] | None = None,
 ) -> str:
     """One panel per (metric, label); per series (label -> runs, each a list of rows in update
-    order) the mean over runs against environment steps with its 95% bootstrap band
+    order) the mean over runs against environment steps with its 95% confidence band
     (`_draw_series`), under a caption that says so. `marks` (label -> value) draws a dashed line
     across the first panel in the series' colour: a published final value."""
     plt = pyplot()
@@ -128,9 +124,7 @@ def curves(
         _steps_axis(axis, label)
     axes[0][0].legend(fontsize=8, loc="best")
     fig.suptitle(title)
-    caption = CURVES_CAPTION.format(
-        confidence=statistics.CONFIDENCE, resamples=statistics.RESAMPLES, needed=statistics.interval_seeds_needed()
-    )
+    caption = CURVES_CAPTION.format(confidence=statistics.CONFIDENCE)
     fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=7, wrap=True)
     return _save(fig, path, rect=(0, 0.06, 1, 1))
 

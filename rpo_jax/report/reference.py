@@ -30,18 +30,23 @@ class Published:
 
 def read(path: Path) -> dict[tuple[str, str], Published]:
     """(env, algo) -> the published figures; a missing column or a non-number is bad input."""
-    with path.open(newline="") as file:
-        reader = csv.DictReader(file)
-        missing = [name for name in COLUMNS if name not in (reader.fieldnames or ())]
-        if missing:
-            raise UsageError(f"{path}: missing column(s) {', '.join(missing)}; a reference table has {', '.join(COLUMNS)}")
-        table = {}
-        for line, row in enumerate(reader, start=2):
-            try:
-                numbers = float(row["mean"]), float(row["std"]), int(row["seeds"]), int(float(row["budget"]))
-            except ValueError as error:
-                raise UsageError(f"{path}:{line}: {error}; mean and std are numbers, seeds and budget whole numbers") from None
-            table[row["env"], row["algo"]] = Published(*numbers, source=row["source"])
+    try:
+        with path.open(newline="") as file:
+            reader = csv.DictReader(file)
+            missing = [name for name in COLUMNS if name not in (reader.fieldnames or ())]
+            if missing:
+                expected = ", ".join(COLUMNS)
+                raise UsageError(f"{path}: missing column(s) {', '.join(missing)}; a reference table has {expected}")
+            table = {}
+            for line, row in enumerate(reader, start=2):
+                try:
+                    numbers = float(row["mean"]), float(row["std"]), int(row["seeds"]), int(float(row["budget"]))
+                except (ValueError, TypeError) as error:  # TypeError: a short row's missing cell is None
+                    why = "mean and std are numbers, seeds and budget whole numbers"
+                    raise UsageError(f"{path}:{line}: {error}; {why}") from None
+                table[row["env"], row["algo"]] = Published(*numbers, source=row["source"])
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise UsageError(f"{path} is not a CSV text file ({error})") from None
     return table
 
 
@@ -100,35 +105,58 @@ def section(summary: dict, table: dict[tuple[str, str], Published], algos: dict[
     if not compared:
         return []
     p_values = [welch_p(published, stats) for _, _, stats, published in compared]
-    rows = []
+    training, evaluation = [], []
     for (env, variant, stats, published), p, adjusted in zip(compared, p_values, holm(p_values), strict=True):
-        evaluated = "eval_mean" in stats
-        rows.append(
-            f"| {env} | {variant} | {stats['seeds']} | {int(stats['env_steps']):,} | {cell(stats, 'return')} "
-            f"| {inside(published, stats, 'return')} | {_p(p)} | {_p(adjusted)} | {cell(stats, 'eval') if evaluated else ''} "
-            f"| {inside(published, stats, 'eval') if evaluated else ''} "
-            f"| {published.mean:.2f} ± {published.std:.2f} | {published.seeds} | {published.budget:,} |"
+        theirs = f"{published.mean:.2f} ± {published.std:.2f}"
+        training.append(
+            f"| {env} | {variant} | {cell(stats, 'return')} | {theirs} | {inside(published, stats, 'return')} "
+            f"| {_p(p)} | {_p(adjusted)} |"
         )
-    sources = sorted({published.source for published in table.values()})
+        if "eval_mean" in stats:
+            evaluation.append(f"| {env} | {variant} | {cell(stats, 'eval')} | {theirs} | {inside(published, stats, 'eval')} |")
     return [
         "## Beside the published reference",
         "",
-        "Ours: the final training return (as in the tables above) and the deterministic evaluation at "
-        "the end, mean ± sample std over seeds [95% CI]; 'in CI' says whether the reference's mean lies "
-        "inside that interval; 'Welch p' is the two-sided p-value of Welch's t-test between our seeds' "
-        "training returns and the reference's mean ± std over its seeds (its std read as a sample std), "
-        "which counts the reference's spread as well as ours: a 'no' with p above 0.05 is a difference "
-        "the seeds cannot tell from chance. 'Holm p' adjusts it for testing every row of this table at "
-        "once (Holm's step-down method): with many rows, some fall below 0.05 by chance alone, and only "
-        "an adjusted value below 0.05 marks a difference the table as a whole cannot put down to chance. "
-        f"The reference: mean ± std over its seeds, as published ({'; '.join(sources)}).",
+        *_budgets(compared, table),
         "",
-        "| env | variant | seeds | steps | training return | in CI | Welch p | Holm p | evaluation return | in CI "
-        "| reference | ref. seeds | ref. steps |",
-        "|---" * 13 + "|",
-        *rows,
+        "### Training return",
         "",
+        "Ours: the final training return (as in the tables above), mean ± sample std over seeds [95% CI]; "
+        "'in CI' says whether the reference's mean lies inside that interval; 'Welch p' is the two-sided "
+        "p-value of Welch's t-test between our seeds' training returns and the reference's mean ± std over "
+        "its seeds (its std read as a sample std), which counts the reference's spread as well as ours: a "
+        "'no' with p above 0.05 is a difference the seeds cannot tell from chance. 'Holm p' adjusts it for "
+        "testing every row of this table at once (Holm's step-down method): only an adjusted value below "
+        "0.05 marks a difference the table as a whole cannot put down to chance.",
+        "",
+        "| env | variant | ours | reference | in CI | Welch p | Holm p |",
+        "|---" * 7 + "|",
+        *training,
+        "",
+        *(
+            [
+                "### Deterministic evaluation",
+                "",
+                "Ours: the deterministic policy's return at the end, mean ± sample std over seeds [95% CI].",
+                "",
+                "| env | variant | ours | reference | in CI |",
+                "|---" * 5 + "|",
+                *evaluation,
+                "",
+            ]
+            if evaluation
+            else []
+        ),
     ]
+
+
+def _budgets(compared: list, table: dict[tuple[str, str], Published]) -> list[str]:
+    """What the two sides ran: our seeds and steps, the reference's, and where it comes from."""
+    ours = sorted({(stats["seeds"], int(stats["env_steps"])) for _, _, stats, _ in compared})
+    theirs = sorted({(published.seeds, published.budget) for *_, published in compared})
+    sources = sorted({published.source for published in table.values()})
+    runs = lambda pairs: " or ".join(f"{seeds} seeds of {steps:,} steps" for seeds, steps in pairs)  # noqa: E731
+    return [f"Ours: {runs(ours)} each. The reference: {runs(theirs)} each, mean ± std as published ({'; '.join(sources)})."]
 
 
 def marks(table: dict[tuple[str, str], Published], env: str, variants: dict[str, str]) -> dict[str, float]:

@@ -13,10 +13,12 @@ from rpo_jax.scores import with_spread
 
 def cell(stats: dict, name: str, digits: int = 2) -> str:
     """`stats`' NAME_mean ± NAME_std [NAME_low, NAME_high]; the mean alone for one seed."""
+    if math.isnan(stats[f"{name}_mean"]):  # no seed has one: no episode ended
+        return "n/a"
     # One seed has no spread to show: a "± 0.00" would read as a measured one.
     mean, std = (f"{stats[f'{name}_{part}']:.{digits}f}" for part in ("mean", "std"))
-    interval = statistics.interval_text(stats[f"{name}_low"], stats[f"{name}_high"], statistics.interval_seeds_needed(), digits)
-    return with_spread(mean, f" ± {std} {interval}", stats["seeds"])
+    interval = statistics.interval_text(stats[f"{name}_low"], stats[f"{name}_high"], statistics.MEAN_INTERVAL_MIN_SEEDS, digits)
+    return with_spread(mean, f" ± {std} {interval}", stats.get(f"{name}_n", stats["seeds"]))
 
 
 def table(envs: Sequence[str], variants: Sequence[str], cells: dict, bold: dict) -> list[str]:
@@ -34,7 +36,8 @@ def table(envs: Sequence[str], variants: Sequence[str], cells: dict, bold: dict)
 
 def best(summary: dict, cells: dict, env: str, field: str) -> str | None:
     """The variant of `env` among `cells` with the highest `summary[env, variant][field]`."""
-    return max((v for e, v in cells if e == env), key=lambda v: summary[env, v][field], default=None)
+    known = [v for e, v in cells if e == env and not math.isnan(summary[env, v][field])]  # NaN: none to compare
+    return max(known, key=lambda v: summary[env, v][field], default=None)
 
 
 def result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
@@ -50,9 +53,8 @@ def result_tables(summary: dict, envs: list[str], variants: list[str]) -> list[s
         "## Final return",
         "",
         "The episode return averaged over the last 10% of logged updates: mean ± sample std over seeds "
-        f"and, in brackets, the {statistics.CONFIDENCE:.0%} bootstrap confidence interval of the mean "
-        f"({statistics.RESAMPLES} resamples; the value alone where a variant has one seed, n/a with fewer than "
-        f"{statistics.interval_seeds_needed()}, where the interval could only restate the seeds' range); the best mean "
+        f"and, in brackets, the {statistics.CONFIDENCE:.0%} Student t confidence interval of the mean "
+        "(the value alone where a variant has one seed); the best mean "
         "of each environment in bold.",
         "",
         *table(envs, variants, returns, {env: best(summary, summary, env, "return_mean") for env in envs}),
@@ -108,6 +110,8 @@ def aggregate_section(
     `report.improvements`)."""
     ranged = [env for env in envs if statistics.score_range(env)]
     unranged = [env for env in envs if env not in ranged]
+    if not ranged:  # no environment has a fixed range: no score to compare, no section
+        return [f"No score across environments: none of {', '.join(unranged)} has a fixed range.", ""]
     lines = [
         "## Across environments",
         "",

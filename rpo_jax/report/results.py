@@ -1,0 +1,61 @@
+"""results.csv, an experiment's rows: its columns, written whole, and read back checked (one
+line for a file that is not what rpo_jax.experiment writes)."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Iterable
+
+from rpo_jax.errors import UsageError
+from rpo_jax.hyperparams import SWEEPABLE
+from rpo_jax.run.directory import RESULTS_FILE
+from rpo_jax.run.files import write_text
+
+ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
+# A logged row's update and `ppo.Metrics`' fields in order: typed out (this module loads no JAX), pinned by a test.
+METRIC_COLUMNS = (
+    "update", "env_steps", "episode_return", "episode_length", "episodes_finished", "policy_entropy",
+    "policy_loss", "value_loss", "approx_kl", "clip_fraction", "action_std", "learning_rate",
+)  # fmt: skip
+# The deterministic policy's return on fresh episodes, in the rows of runs evaluated during
+# training (--eval-every); empty elsewhere, and absent from results written before it existed.
+EVAL_COLUMN = "eval_return"
+COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
+TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
+
+
+def write_results(out: Path, rows: Iterable[dict]) -> None:
+    """results.csv through a temporary file, so a crash never leaves half of it."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(out / RESULTS_FILE, buffer.getvalue())
+
+
+def read_results(directory: Path) -> list[dict]:
+    path = directory / RESULTS_FILE
+    if not path.is_file():
+        raise UsageError(f"{directory} has no {RESULTS_FILE}; give a directory written by rpo_jax.experiment")
+    try:
+        with open(path, newline="") as file:
+            reader = csv.DictReader(file)
+            missing = [name for name in ID_COLUMNS + METRIC_COLUMNS if name not in (reader.fieldnames or ())]
+            if missing:
+                expected = ", ".join(COLUMNS)
+                raise UsageError(f"{path}: column(s) {', '.join(missing)} missing; rpo_jax.experiment writes {expected}")
+            rows = list(reader)
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise UsageError(f"{path} is not a CSV text file ({error}); rpo_jax.experiment writes it") from None
+    for line, row in enumerate(rows, start=2):
+        if not row.get(EVAL_COLUMN):
+            row.pop(EVAL_COLUMN, None)
+        for name in (*ID_COLUMNS, *METRIC_COLUMNS, *([EVAL_COLUMN] if EVAL_COLUMN in row else [])):
+            if name not in TEXT_COLUMNS:
+                try:
+                    row[name] = float(row[name])
+                except (TypeError, ValueError):  # TypeError: a short row's cell is None
+                    raise UsageError(f"{path}: line {line}: {name} must be a number, got {row[name]!r}") from None
+    return rows
