@@ -164,6 +164,14 @@ class Config:
         unread = set(ALGORITHM_FIELDS) - set(self.algorithm.reads)
         return {name: 0.0 if name in unread else float(getattr(self, name)) for name in SWEEPABLE}
 
+    def check_sweep(self, names: typing.Iterable[str]) -> None:
+        """Refuses a sweep of an unknown name, or of a hyperparameter this algorithm's loss does not
+        read (it would train every point alike), as `--sweep` does."""
+        for name in names:
+            if name not in SWEEPABLE:
+                raise UsageError(f"cannot sweep {name!r}: the sweepable hyperparameters are {', '.join(SWEEPABLE)}")
+        check_applies(self.algo, names, lambda name: f"a sweep of {name}")
+
     def validate(self) -> "Config":
         """Raises UsageError (a ValueError) naming the first invalid field and what is allowed."""
         _check_choices(self)
@@ -284,7 +292,7 @@ PRESETS: dict[str, Config] = {
 }  # fmt: skip
 # rl_games' IsaacGym BallBalance config: Cartpole's with an MLP [128, 64, 32], 4096 environments
 # in minibatches of 8192 and value normalisation (without it BallBalance plateaus near 245, see
-# benchmarks/RESULTS.md), for its 250 updates (16M steps).
+# benchmarks/lab/notes/learning.md), for its 250 updates (16M steps).
 PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
     PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
     hidden_sizes=(128, 64, 32), normalize_value=True,

@@ -8,6 +8,7 @@ import signal
 import socket
 import sys
 import threading
+from pathlib import Path
 from typing import Callable, Iterator
 
 # The exit code of a run stopped by a non-finite number (`Diverged`).
@@ -40,6 +41,11 @@ class Interrupted(Exception):
         if self.checkpoint is None:
             return " (resumes from the start: no checkpoint yet)"
         return f" (resumes from update {self.checkpoint:,} of {self.updates:,})"
+
+
+class TrackingFailed(Exception):
+    """A tracker (W&B, TensorBoard) failed as it closed, after training had finished and the run's
+    parameters and summary.json were written: one line, exit code 2, and the run is kept."""
 
 
 class WriteFailed(OSError):
@@ -78,6 +84,27 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def stops_deferred() -> Iterator[None]:
+    """Within the block, Ctrl-C and SIGTERM wait for it to end, then are delivered again to the
+    handlers they would have met. For a checkpoint's write (under a second): stopped midway, orbax's
+    writer threads go on scheduling work on an executor that the stop shut down, each printing a
+    traceback after the stop's one line. Elsewhere than the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    taken: list[int] = []
+    stops = (signal.SIGINT, signal.SIGTERM)
+    previous = {number: signal.signal(number, lambda signum, frame: taken.append(signum)) for number in stops}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    if taken:
+        signal.raise_signal(taken[0])
 
 
 # How long a stop may take to take effect before the user is told it is coming: Python's own
@@ -125,6 +152,34 @@ def _watch_stops(reader: socket.socket, stopped: threading.Event) -> None:
                 flush=True,
             )
             return  # once is enough; later signals' bytes stay unread in the closed pair
+
+
+def check_no_shadowing() -> None:
+    """Refuses, as UsageError, a command started where Python imported a module from the current
+    directory (`cd RUN && python -m rpo_jax.evaluate .`: `python -m` puts it first on sys.path)
+    in place of the installed one, such as a `docstring_parser.py` planted in a run directory.
+    Its code has run by now; the command stops before it reads or writes anything. A clone of
+    the project is the exception: `python -m rpo_jax.train` there imports its modules from it."""
+    cwd = Path.cwd().resolve()
+    if not any(Path(entry or ".").resolve() == cwd for entry in sys.path):
+        return  # the console script, `python -P`, or another directory
+    if (cwd / "pyproject.toml").is_file() and _module_home(sys.modules.get("rpo_jax")) == cwd:
+        return  # the project's own clone: its rpo_jax and examples are meant to be imported from it
+    for name, module in list(sys.modules.items()):
+        if "." not in name and _module_home(module) == cwd:
+            raise UsageError(
+                f"{name} was imported from the current directory {cwd}, not from where it is installed; "
+                "run from another directory, or with `python -P -m ...` or the rpo-jax command, which do not import from it"
+            )
+
+
+def _module_home(module: object) -> Path | None:
+    """The directory a top-level module is imported from: its file's, or its package's parent."""
+    file = getattr(module, "__file__", None)
+    if not isinstance(file, str):
+        return None
+    path = Path(file).resolve()
+    return path.parent.parent if path.name == "__init__.py" else path.parent
 
 
 def usage_failure(error: UsageError) -> int:
@@ -184,6 +239,9 @@ def command_failures(resume: Callable[[object | None], str] | None = None) -> It
             exit.code = os_failure(error, resume(getattr(error, "out", None)) if resume else "")
         except Diverged as error:
             exit.code = diverged_failure(error)
+        except TrackingFailed as error:
+            print(f"error: {error}", file=sys.stderr)
+            exit.code = 2
         except (Interrupted, KeyboardInterrupt) as error:
             if resume is None:
                 raise

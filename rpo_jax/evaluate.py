@@ -19,7 +19,7 @@ own rendering (Gymnasium, DeepMind Control). On a machine without a display MuJo
 OpenGL backend that works headless: EGL (Mesa's `libegl1` works on a CPU; rpo_jax picks it
 when no DISPLAY is set) or OSMesa (`MUJOCO_GL=osmesa`, package `libosmesa6`), chosen with the
 MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video` extra:
-`pip install -e '.[video]'`.
+`pip install '.[video]'`.
 """
 
 from __future__ import annotations
@@ -132,16 +132,33 @@ def run_command(args: EvaluateArgs) -> None:
     deterministic = not args.stochastic
     # Training's program over all the runs, as in training: another rounds differently (module docstring).
     returns, means, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
-    spread = with_spread(f"{means[run]:.2f}", f" ± {sample_std(returns[run]):.2f}", episodes)
-    print(
-        f"{saved['env']} run {run} (seed {saved['runs'][run]['seed']}), {policy_mode(deterministic)} policy: "
-        f"return {spread} over {episodes} episodes, {episodes_source(args, run, episodes == in_training)}"
-    )
+    chosen = [run] if args.trained.run is not None else list(range(len(saved["runs"])))
+    for index in chosen:
+        spread = with_spread(f"{means[index]:.2f}", f" ± {sample_std(returns[index]):.2f}", episodes)
+        print(
+            f"{saved['env']} run {index} (seed {saved['runs'][index]['seed']}), {policy_mode(deterministic)} policy: "
+            f"return {spread} over {episodes} episodes, {episodes_source(args, index, episodes == in_training)}"
+        )
+    if len(chosen) > 1:
+        print(over_runs(saved, [float(mean) for mean in means]))
     if args.video:
         key = jax.random.fold_in(jax.random.PRNGKey(seeds[run]), 1)
         (episode,) = video.record(env, run_policy(run), 1, key, deterministic)
         video.write_mp4(args.video, [episode])
         print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
+
+
+def over_runs(saved: dict, means: list[float]) -> str:
+    """The mean ± sample std of every run's evaluation return over seeds; with population-based
+    training over populations, each population's its best member's (the unit of replication)."""
+    pbt = saved.get("plan", {}).get("pbt") or {}
+    members = pbt.get("population") if pbt.get("pbt") else None
+    values, unit = means, "seeds"
+    if members:
+        values = [max(means[start : start + members]) for start in range(0, len(means), members)]
+        unit = "populations (each its best member)"
+    spread = with_spread(f"{sum(values) / len(values):.2f}", f" ± {sample_std(values):.2f}", len(values))
+    return f"{saved['env']}: return {spread} (mean ± sample std) over {len(values)} {unit}"
 
 
 def episodes_source(args: EvaluateArgs, run: int, as_in_training: bool) -> str:

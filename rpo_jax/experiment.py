@@ -4,10 +4,9 @@
     python -m rpo_jax.experiment ppo-vs-rpo --suite gym --num-seeds 3
     python -m rpo_jax.experiment long-horizon --total-timesteps 20000000
 
-Each (environment, job) is one training run (`rpo_jax.run.chunks`): its seeds, and the values of a
-swept hyperparameter where a job has one, train together in one compiled program. Everything goes
-under --out: `runs/<env>/<job>/` (the training runs), `results.csv`, `report.md` and
-`figures/` (see `rpo_jax.report`).
+Each (environment, job) is one training run (`rpo_jax.run.chunks`): its seeds, and a job's swept
+values, train together in one compiled program. Everything goes under --out: `runs/<env>/<job>/`
+(the training runs), `results.csv`, `report.md` and `figures/` (see `rpo_jax.report`).
 
 Started again with the same command, an experiment skips the runs that finished and resumes
 the unfinished one from its last checkpoint, so a crash loses at most one checkpoint interval
@@ -31,12 +30,12 @@ from rpo_jax import envs
 from rpo_jax.config import PRESETS, SWEEPABLE, Config
 from rpo_jax.envs import dmc_tasks
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.report import compose
+from rpo_jax.report import compose, results
 from rpo_jax.run.directory import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
 from rpo_jax.run.files import write_json
 from rpo_jax.run.options import (
-    JOINING_FIELDS, PLACEMENT_FIELDS, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, parse,
-    refuse_old_flags,
+    PLACEMENT_FIELDS, JobConfig, JobProcesses, JobRunSpec, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields,
+    parse, refuse_old_flags, refuse_train_flags,
 )  # fmt: skip
 
 PROG = "python -m rpo_jax.experiment"
@@ -145,7 +144,8 @@ SuiteName = Literal[tuple(sorted(SUITES))]  # type: ignore[valid-type]
 class ExperimentArgs:
     """Run one of the paper's comparisons and write results.csv, report.md and figures. The flags
     it shares with rpo_jax.train mean the same; config flags, where given, override every job's
-    preset. By default 10 seeds and 8M steps per run, as the paper (100M for long-horizon)."""
+    preset. By default 10 seeds and 8M steps per run, as the paper (100M for long-horizon), and the
+    paper preset's config, as the jobs train (rl_games' on the IsaacGym tasks)."""
 
     name: tyro.conf.Positional[ExperimentName]
     """the experiment"""
@@ -155,18 +155,16 @@ class ExperimentArgs:
     """environment names instead of a suite"""
     jobs: tuple[str, ...] | None = None
     """only these of the experiment's jobs; None: all"""
-    config: tyro.conf.OmitArgPrefixes[Config] = Config(total_timesteps=PAPER_TIMESTEPS)
+    config: tyro.conf.OmitArgPrefixes[JobConfig] = JobConfig(**{**vars(PRESETS["paper"]), "total_timesteps": PAPER_TIMESTEPS})
     preset: PresetName | None = None
     """config for every environment; None: rl_games' for the IsaacGym tasks, paper for the rest"""
-    run: tyro.conf.OmitArgPrefixes[RunSpec] = RunSpec(num_seeds=PAPER_SEEDS)
-    processes: tyro.conf.OmitArgPrefixes[Processes] = Processes()
+    run: tyro.conf.OmitArgPrefixes[JobRunSpec] = JobRunSpec(num_seeds=PAPER_SEEDS)
+    processes: tyro.conf.OmitArgPrefixes[JobProcesses] = JobProcesses()
     tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
     # The flags given (`options.given_fields`): the config fields given override the presets'.
     given: tyro.conf.Suppress[frozenset[str]] = frozenset()
 
 
-# Flags of rpo_jax.train that an experiment refuses: its jobs sweep, and it trains in one process.
-NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
 # The flags of experiments before they took rpo_jax.train's names, and what became of them.
 OLD_FLAGS = {"--seeds": "was renamed --num-seeds", "--timesteps": "was renamed --total-timesteps"}
 # The run's and the processes' fields that experiment.json records only where given, so that
@@ -178,6 +176,7 @@ RECORDED_WHERE_GIVEN = ("seed", "log_every", *PLACEMENT_FIELDS, "capture_video",
 def parse_args(argv: Sequence[str]) -> ExperimentArgs:
     """The flags as ExperimentArgs; bad input raises UsageError with tyro's message as one line."""
     refuse_old_flags(argv, OLD_FLAGS)
+    refuse_train_flags(argv)
     args = parse(ExperimentArgs, argv, None, PROG)
     return dataclasses.replace(args, given=frozenset(given_fields(argv)))
 
@@ -197,6 +196,8 @@ def env_names(args: ExperimentArgs) -> list[str]:
     """The environments of --envs, or of the suite, checked."""
     if args.envs and args.suite:
         raise UsageError("--envs and --suite name the environments both; give one")
+    if args.envs == ():  # `--envs` followed by no name: not the default suite's many tasks
+        raise UsageError("--envs needs one or more environment names (python -m rpo_jax.envs lists them)")
     names = list(args.envs or SUITES[args.suite or EXPERIMENTS[args.name].default_suite])
     for name in names:
         envs.env_spec(name)  # registered names, gymnasium/<id> and import paths; else a one-line error
@@ -210,8 +211,6 @@ def env_names(args: ExperimentArgs) -> list[str]:
 def config_overrides(args: ExperimentArgs, jobs: Sequence[Job]) -> dict[str, Any]:
     """The config fields given, which override every job's preset; refuses the flags an
     experiment does not take and the fields that its jobs set."""
-    for name in sorted(args.given & set(NOT_FOR_EXPERIMENTS)):
-        raise UsageError(f"{flag(name)} is rpo_jax.train's: an experiment's jobs choose algorithm and sweeps, in one process")
     for name in sorted(args.given & {name for job in jobs for name, _ in job.config}):
         raise UsageError(f"{flag(name)}: {args.name}'s jobs set it; it tells them apart")
     fields = {field.name for field in dataclasses.fields(Config)} - {"total_timesteps"}
@@ -385,13 +384,18 @@ def run_jobs(
         group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
         summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)
         print(progress_line(prefix, job, summary), flush=True)
-        compose.write_results(out, collect_rows(out, definition, jobs))
+        results.write_results(out, collect_rows(out, definition, jobs))
 
 
 def progress_line(prefix: str, job: Job, summary: dict) -> str:
     """One run's result: each variant's final return (a sweep's variants are not averaged)."""
-    finals = ", ".join(f"{job.variant(point['hparams'])} {point['final_return_mean']:.2f}" for point in summary["grid"])
+    finals = ", ".join(f"{job.variant(point['hparams'])} {returned(point['final_return_mean'])}" for point in summary["grid"])
     return f"{prefix}: final return {finals}, {summary['sps']:,.0f} steps/s"
+
+
+def returned(mean: float | None) -> str:
+    """A final return as the progress line shows it; None: no episode ended in the runs."""
+    return "n/a (no episode ended)" if mean is None else f"{mean:.2f}"
 
 
 def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:
@@ -413,8 +417,8 @@ def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]
                         "dist": config["config"]["dist"],
                         **{name: metrics[name] for name in SWEEPABLE},
                         "seed": metrics["seed"],
-                        **{name: metrics[name] for name in compose.METRIC_COLUMNS},
-                        **({compose.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
+                        **{name: metrics[name] for name in results.METRIC_COLUMNS},
+                        **({results.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
                     }
                 )
     return rows

@@ -212,7 +212,7 @@ def onnx_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     try:
         import onnx  # noqa: F401
     except ImportError:
-        raise UsageError("--onnx needs the onnx extra: pip install -e '.[onnx]'") from None
+        raise UsageError("--onnx needs the onnx extra: pip install '.[onnx]'") from None
     return onnx_model(arrays).SerializeToString()
 
 

@@ -36,12 +36,18 @@ class Hyperparams:
     drac_coef: jax.Array = hyperparameter("weight of DrAC's policy and value regularisers", ("drac",))
 
     @classmethod
-    def from_config(cls, config: Any) -> Hyperparams:
-        """The values a `Config` trains with (`Config.hyperparameters`), as float32 scalars."""
+    def from_config(cls, config: Any, **swept: Any) -> Hyperparams:
+        """The values a `Config` trains with (`Config.hyperparameters`), as float32 scalars; with
+        `swept` (a name and its values [R] each), a sweep of R runs: the fields named take their
+        values, the others the config's, each broadcast to [R]. A field the config's algorithm
+        does not read is refused (UsageError), as `--sweep` refuses it."""
         import jax.numpy as jnp  # here: the command line imports this module without JAX
 
-        values = config.hyperparameters()
-        return cls(**{name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE})
+        config.check_sweep(swept)
+        values = {**config.hyperparameters(), **swept}
+        arrays = {name: jnp.asarray(values[name], jnp.float32) for name in SWEEPABLE}
+        shape = jnp.broadcast_shapes(*(array.shape for array in arrays.values()))
+        return cls(**{name: jnp.broadcast_to(array, shape) for name, array in arrays.items()})
 
 
 SWEEPABLE = tuple(field.name for field in dataclasses.fields(Hyperparams))

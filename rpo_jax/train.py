@@ -34,6 +34,7 @@ from rpo_jax.run.options import Pbt, PresetName, Processes, RunSpec, Tracking, f
 from rpo_jax.scores import with_spread
 
 PROG = "python -m rpo_jax.train"
+NO_RETURN = "n/a (no episode ended)"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,10 +131,11 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
         progress.close()
 
 
-def member_line(run: dict[str, Any], with_hparams: bool) -> str:
-    """A population member's run, seed and final return, and where asked the hyperparameters it ends with."""
-    now = " ".join(f"{name}={value:.3g}" for name, value in run["hparams"].items()) if with_hparams else ""
-    return f"run {run['run']} (seed {run['seed']}), final return {run['final_return']:.2f}" + (f", now {now}" if now else "")
+def member_line(run: dict[str, Any], explored: Sequence[str] = ()) -> str:
+    """A population member's run, seed and final return, and the `explored` hyperparameters it ends with."""
+    now = " ".join(f"{name}={run['hparams'][name]:.3g}" for name in explored) if explored else ""
+    final = NO_RETURN if run["final_return"] is None else f"{run['final_return']:.2f}"
+    return f"run {run['run']} (seed {run['seed']}), final return {final}" + (f", now {now}" if now else "")
 
 
 def print_summary(summary: dict[str, Any]) -> None:
@@ -143,12 +145,17 @@ def print_summary(summary: dict[str, Any]) -> None:
         final = mean_and_spread(point, "final_return")
         evaluated = f", deterministic eval return {mean_and_spread(point, 'eval_return')}" if "eval_return_mean" in point else ""
         spread = with_spread("", " (mean ± sample std)", seeds)
-        print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated}{spread} over {seeds} seed(s)")
+        populations = len(summary.get("best_members", []))
+        over = f"{seeds} members of {populations} population(s)" if populations else f"{seeds} seed(s)"
+        print(f"{summary['env']} {summary['algo']}{label}: final return {final}{evaluated}{spread} over {over}")
     if "best_member" in summary:
         populations = summary.get("best_members", [])
         for number, member in enumerate(populations if len(populations) > 1 else []):
-            print(f"population {number}: {member_line(summary['runs'][member], with_hparams=False)}")
-        print(f"best member: {member_line(summary['runs'][summary['best_member']], with_hparams=True)}")
+            print(f"population {number}: {member_line(summary['runs'][member])}")
+        # The hyperparameters the population explored: those its members end with apart.
+        hparams = summary["runs"][0]["hparams"]
+        explored = [name for name in hparams if len({run["hparams"][name] for run in summary["runs"]}) > 1]
+        print(f"best member: {member_line(summary['runs'][summary['best_member']], explored)}")
     print(
         f"{len(summary['runs'])} run(s), {summary['sps']:,.0f} steps/s, "
         f"compile {summary['compile_seconds']:.1f}s -> {summary['out']}"
@@ -157,8 +164,10 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 def mean_and_spread(point: dict[str, Any], name: str) -> str:
     """summary.json's NAME_mean ± NAME_std ("179.43 ± 119.75"); the mean alone where there is no spread (one seed)."""
-    std = point[f"{name}_std"]
-    return f"{point[f'{name}_mean']:.2f}" + ("" if std is None else f" ± {std:.2f}")
+    mean, std = point[f"{name}_mean"], point[f"{name}_std"]
+    if mean is None:  # a final return of runs in which no episode ended
+        return NO_RETURN
+    return f"{mean:.2f}" + ("" if std is None else f" ± {std:.2f}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

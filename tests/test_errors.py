@@ -14,6 +14,7 @@ from rpo_jax import experiment, train
 from rpo_jax.config import Config
 from rpo_jax.errors import Diverged, UsageError
 from rpo_jax.report import compose
+from rpo_jax.report import results as results_csv
 from rpo_jax.run import chunks
 
 __all__ = ["test_envs"]  # point_mass_runs' fixtures: pytest finds them here by these names
@@ -68,9 +69,9 @@ def test_out_of_memory_is_one_line_and_leaves_out_free(tmp_path, capsys, monkeyp
 def results_dir(tmp_path: Path) -> Path:
     directory = tmp_path / "results"
     directory.mkdir()
-    row = {name: 1.0 for name in compose.COLUMNS}
+    row = {name: 1.0 for name in results_csv.COLUMNS}
     row.update(experiment="x", env="cartpole", variant="rpo", algo="rpo", dist="gaussian")
-    compose.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
+    results_csv.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
     return directory
 
 

@@ -107,7 +107,7 @@ def test_evaluate_keeps_its_program_in_the_compile_cache_unless_told_not_to(poin
         (lambda out: (out / CONFIG_FILE).write_text('{"env": "cartpole"'), [], "config.json is not valid JSON"),
         (
             lambda out: (out / CONFIG_FILE).write_text((out / CONFIG_FILE).read_text().replace('"test/point_mass"', '"nope"')),
-            [], "unknown env 'nope'",
+            [], "its 'env' field differs from the one summary.json records the run was trained with",
         ),
         (lambda out: None, ["--video", "no/such/dir/x.mp4"], "the directory"),
         (lambda out: None, ["--seed", str(2**32)], "(the PRNG key's range), got seed 4294967296"),

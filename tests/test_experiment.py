@@ -19,6 +19,7 @@ from rpo_jax import envs, evaluate, experiment, load_policy, train
 from rpo_jax.experiment import Job, progress_line
 from rpo_jax.errors import UsageError
 from rpo_jax.report import compose
+from rpo_jax.report import results
 from rpo_jax.run import chunks
 from rpo_jax.run import plan as plan_module
 from rpo_jax.run import video as drawn
@@ -48,19 +49,19 @@ def job_dir(out: Path, job: str) -> Path:
 def test_experiment_writes_results_report_and_figures(uninterrupted):
     with open(uninterrupted / "results.csv", newline="") as file:
         rows = list(csv.DictReader(file))
-    assert tuple(rows[0]) == compose.COLUMNS
+    assert tuple(rows[0]) == results.COLUMNS
     # Every update is logged (100 per run), for 2 variants x 2 seeds.
     assert len(rows) == 2 * 2 * 100
     assert {(r["variant"], r["seed"]) for r in rows} == {(v, s) for v in JOBS for s in ("1", "2")}
     assert {r["experiment"] for r in rows} == {"ppo-vs-rpo"} and {r["env"] for r in rows} == {"cartpole"}
     assert {r["rpo_alpha"] for r in rows if r["variant"] == "rpo"} == {"0.5"}
     for row in rows:
-        assert all(np.isfinite(float(row[name])) for name in compose.METRIC_COLUMNS)
+        assert all(np.isfinite(float(row[name])) for name in results.METRIC_COLUMNS)
 
     text = (uninterrupted / "report.md").read_text()
     assert "| env | ppo | rpo |" in text and "| cartpole |" in text and "**" in text
     assert "## Late training" in text
-    summary = compose.summarise(compose.read_results(uninterrupted))
+    summary = compose.summarise(results.read_results(uninterrupted))
     for job in JOBS:
         finals = json.loads((job_dir(uninterrupted, job) / "summary.json").read_text())["final_return_mean"]
         assert summary["cartpole", job]["return_mean"] == pytest.approx(finals)
@@ -172,11 +173,11 @@ def test_report_rebuilds_and_overlays(uninterrupted, tmp_path, capsys):
 def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp_path, capsys):
     """Seeds added later in a directory of their own: --pool reports them as one set of seeds,
     the same tables as the seeds trained together; a seed in two directories is refused."""
-    rows = compose.read_results(uninterrupted)
+    rows = results.read_results(uninterrupted)
     halves = [tmp_path / "seed-1", tmp_path / "more-seeds"]
     for half, seeds in zip(halves, ({1}, {2})):
         half.mkdir()
-        compose.write_results(half, [row for row in rows if row["seed"] in seeds])
+        results.write_results(half, [row for row in rows if row["seed"] in seeds])
     assert compose.main([*map(str, halves), "--out", str(tmp_path / "pooled"), "--pool"]) == 0
 
     def tables(path):
@@ -196,7 +197,7 @@ def test_report_pools_seeds_trained_into_separate_directories(uninterrupted, tmp
 def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_path):
     one_seed = tmp_path / "one-seed"
     one_seed.mkdir()
-    compose.write_results(one_seed, [row for row in compose.read_results(uninterrupted) if row["seed"] == 1])
+    results.write_results(one_seed, [row for row in results.read_results(uninterrupted) if row["seed"] == 1])
     assert compose.main([str(one_seed)]) == 0
     rows = [line for line in (one_seed / "report.md").read_text().splitlines() if line.startswith("| cartpole |")]
     assert len(rows) >= 3 and not any("±" in row or "(" in row for row in rows)
@@ -322,7 +323,10 @@ def test_experiment_and_train_share_their_flags_by_name():
     # What they share has one name; each has only its own besides (no --seeds for --num-seeds).
     assert experiments - trains == {"--suite", "--envs", "--jobs"}
     population = {"--pbt", "--no-pbt", "--population", "--pbt-every", "--pbt-fields", "--pbt-quantile", "--pbt-explore"}
-    assert trains - experiments == {"--env", "--resume", *population}
+    # ... and train's flags that an experiment does not take are not in its --help.
+    train_only = {"--algo", "--sweep", "--coordinator", "--num-processes", "--process-id", "--coordinator-timeout"}
+    joining = {"--distributed", "--no-distributed"}
+    assert trains - experiments == {"--env", "--resume", *population, *train_only, *joining}
     for name in (
         "--num-seeds",
         "--total-timesteps",

@@ -82,8 +82,9 @@ def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, 
 
 
 def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch):
-    """A real SIGTERM arriving while orbax writes the fourth checkpoint: the write is abandoned,
-    the run resumes from the third and ends as the uninterrupted run, bit for bit."""
+    """A real SIGTERM arriving while orbax writes the fourth checkpoint: the write ends first (a stop
+    midway left orbax's threads printing tracebacks), the run resumes from it and ends as the
+    uninterrupted run, bit for bit."""
     save = ocp.CheckpointManager.save
 
     def terminated_while_saving(self, *args, **kwargs):
@@ -94,9 +95,9 @@ def test_sigterm_during_a_checkpoint_write_exits_143_and_resumes_exactly(finishe
     monkeypatch.setattr(ocp.CheckpointManager, "save", terminated_while_saving)
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 143
-    resumes = f"(resumes from update 3 of {UPDATES})"
+    resumes = f"(resumes from update 4 of {UPDATES})"
     assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
-    assert not (out / "checkpoints" / "4").exists()
+    assert (out / "checkpoints" / "4").exists()
     monkeypatch.undo()
     assert train.main(["--resume", str(out), "--quiet"]) == 0
     assert (out / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()

@@ -278,12 +278,13 @@ LIARS = {
     "obs-size": (lying(envs.EnvSpec("obs-size", 3, 1, (-1.0,), (1.0,), 50, "jax")),
                  "reset(key): obs has shape (2,), the spec needs (3,) (and 1 more problem(s))"),
     "action-size": (lying(envs.EnvSpec("action-size", 2, 2, (-1.0, -1.0), (1.0, 1.0), 50, "jax")), None),
-    "raises": (ShapeError, "a reset and a step, traced: raised TypeError: dot_general requires contracting dimensions"),
+    # A raising environment is named by its own file and line (here, this file's).
+    "raises": (ShapeError, f"a reset and a step, traced: raised TypeError at {__file__}:"),
     # A host-side one: its program takes the spec's sizes on trust, so a simulator is reset for real.
     "host-obs-size": (lambda: envs.HostEnv(envs.EnvSpec("host-obs-size", 3, 1, (-1.0,), (1.0,), 5, "host"), EndlessSimulators),
                       "a reset on the host: obs has shape (1, 2), the spec needs (1, 3)"),
     "host-raises": (lambda: envs.HostEnv(envs.EnvSpec("host-raises", 2, 1, (-1.0,), (1.0,), 5, "host"), Unbuildable),
-                    "a reset on the host: raised RuntimeError: no simulator here"),
+                    f"a reset on the host: raised RuntimeError at {__file__}:"),
 }  # fmt: skip
 
 

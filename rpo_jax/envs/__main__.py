@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 
 from rpo_jax.errors import UsageError, command_failures
@@ -24,23 +23,16 @@ NOTE = (
 )
 
 
-# The optional extras (pyproject.toml), the names they provide and the modules they install.
-EXTRAS = {
-    "gym": ("gym/BipedalWalker-v3, gymnasium/", ("gymnasium", "Box2D")),
-    "dmc": ("dmc/", ("envpool",)),
-    "pybullet": ("pybullet/", ("pybullet", "pybullet_envs")),
-    "playground": ("mjx-dmc/", ("mujoco_playground",)),
-}
-
-
 def extras_lines() -> list[str]:
     """One line per optional extra: installed, or the command that installs it. Found without
     importing the modules."""
+    from rpo_jax.envs.registry import EXTRAS, missing_modules
+
     lines = []
-    for extra, (prefix, modules) in EXTRAS.items():
-        missing = [module for module in modules if importlib.util.find_spec(module) is None]
-        state = f"not installed (no {', '.join(missing)}): pip install -e '.[{extra}]'" if missing else "installed"
-        lines.append(f"extra {extra} ({prefix}*): {state}")
+    for extra, (prefixes, _) in EXTRAS.items():
+        missing = missing_modules(extra)
+        state = f"not installed (no {', '.join(missing)}): pip install '.[{extra}]'" if missing else "installed"
+        lines.append(f"extra {extra} ({', '.join(prefixes)}*): {state}")
     return lines
 
 

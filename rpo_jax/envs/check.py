@@ -14,6 +14,8 @@ runs its batch (`vectorize`) the same way, so that its simulators' own time limi
 from __future__ import annotations
 
 import math
+import traceback
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -125,7 +127,16 @@ def _guarded(what: str, check: Callable[[], list[str]]) -> list[str]:
         return check()
     except Exception as error:  # a faulty environment is reported, not raised
         first = (str(error).strip().splitlines() or [""])[0][:300]
-        return [f"{what}: raised {type(error).__name__}: {first}"]
+        return [f"{what}: raised {type(error).__name__}{_raised_at(error)}: {first}"]
+
+
+def _raised_at(error: BaseException) -> str:
+    """ " at FILE:LINE" of the innermost frame of `error`'s traceback outside JAX, NumPy and
+    rpo_jax: the environment's own line (a Python `if` on a traced value fails inside JAX)."""
+    library = (Path(jax.__file__).parent, Path(np.__file__).parent, Path(__file__).parent.parent)
+    outside = lambda frame: not any(Path(frame.filename).is_relative_to(root) for root in library)  # noqa: E731
+    frames = [frame for frame in traceback.extract_tb(error.__traceback__) if outside(frame)]
+    return f" at {frames[-1].filename}:{frames[-1].lineno}" if frames else ""
 
 
 def spec_problems(spec: EnvSpec) -> list[str]:

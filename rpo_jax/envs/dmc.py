@@ -72,7 +72,7 @@ def pool_threads(num_envs: int) -> int:
     of the cores (at least one). More threads than cores only adds switching. Split in two on 2
     cores, pools of one thread trained five pendulum-swingup seeds 5-9% faster (in turns and with
     the runs split), five walker-walk seeds 2-6% faster with the runs split and 3-5% slower in
-    turns (`--split-epochs`, meant for tasks whose update is the cost; benchmarks/RESULTS.md, "A
+    turns (`--split-epochs`, meant for tasks whose update is the cost; benchmarks/lab/notes/host-side.md, "A
     pool's share of the cores where the CPU is split")."""
     return max(1, min(num_envs, usable_cores() // len(jax.devices("cpu"))))
 
@@ -84,7 +84,7 @@ def pool_affinity(threads: int) -> int:
     life of the process: a walker-walk pool of 8 stepped at 11.6k steps/s in some processes and
     18.5k in others on 2 cores, pinned at 17.9-19.0k in every one. Not where the CPU is split
     into devices, whose programs run beside the pools: there pinned pools trained five seeds in
-    turns 7% slower (benchmarks/RESULTS.md, "envpool's threads pinned to the cores")."""
+    turns 7% slower (benchmarks/lab/notes/host-side.md, "envpool's threads pinned to the cores")."""
     whole_machine = threads == usable_cores() == (os.cpu_count() or 1)
     return 0 if whole_machine and len(jax.devices("cpu")) == 1 else -1
 
@@ -94,7 +94,7 @@ class DmcSimulators:
 
     Steps and resets go through envpool's own `_send`, `_reset` and `_recv`, the calls under its
     public `send`, `reset` and `recv`, which rebuild the action's list and the result's named
-    tuples at every step: on a cheap task that is a third of the step (benchmarks/RESULTS.md,
+    tuples at every step: on a cheap task that is a third of the step (benchmarks/lab/notes/host-side.md,
     "The host step's own overhead"). tests/test_dmc.py checks this path against the public one
     across an episode's end, for the envpool releases that pyproject.toml allows."""
 

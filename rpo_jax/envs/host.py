@@ -15,7 +15,7 @@ With shared pools (`HostEnv.sharing_pools`, the command line's `--shared-pools`)
 vmapped program steps together share one pool instead: one pool of runs x `num_envs`
 simulators seeded from the first run's key, in which run r steps simulators r x `num_envs`
 onwards. On a CPU of few cores one pool hands work to its threads and back once a step where
-several pools would each do it (benchmarks/RESULTS.md, "The runs of a group in one pool"). A
+several pools would each do it (benchmarks/lab/notes/host-side.md, "The runs of a group in one pool"). A
 run's episodes then follow from its group's first key and its place in the group, not from its
 own key: the same command on the same placement gives the same episodes, a seed alone does not.
 
@@ -100,7 +100,7 @@ def keep_thread_state() -> None:
     frame stack (16 KiB, mapped and unmapped each time) made every step unmap memory and flush
     the other cores' TLBs. One `PyGILState_Ensure` never released keeps it for the thread's life:
     a step of a pendulum-swingup pool in the compiled scan fell from 133-136 to 105-106 us
-    (benchmarks/RESULTS.md, "A Python thread state a callback")."""
+    (benchmarks/lab/notes/host-side.md, "A Python thread state a callback")."""
     thread = threading.get_ident()
     if thread not in _threads_kept:  # under the GIL: no other thread changes the set meanwhile
         ctypes.pythonapi.PyGILState_Ensure()
@@ -217,7 +217,7 @@ class BatchedHostEnv:
         empty without it), and their pools are stepped side by side (a shared pool once, whole,
         its results reshaped into `out`). Each pool's results are
         written straight into `out`, not stacked first: the scan's own cost a step of five pools
-        fell from 36 to 22 us (benchmarks/RESULTS.md, "The pools' results written in place")."""
+        fell from 36 to 22 us (benchmarks/lab/notes/host-side.md, "The pools' results written in place")."""
         batch = handle.shape
         if self.closed and all(int(h) in self.closed for h in handle.reshape(-1)):
             # A program still running when its pools were closed (the last chunk of an interrupted

@@ -150,4 +150,4 @@ class MissingExtraError(UsageError):
     """An environment needs an optional dependency that is not installed."""
 
     def __init__(self, name: str, module: str, extra: str) -> None:
-        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install -e '.[{extra}]'")
+        super().__init__(f"env {name!r} needs {module}, which is not installed: pip install '.[{extra}]'")

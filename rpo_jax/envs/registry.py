@@ -19,12 +19,13 @@ import importlib.machinery
 import importlib.util
 import inspect
 import re
+import sys
 from pathlib import Path
 from typing import Callable
 
 from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, playground, pybullet
 from rpo_jax.envs.check import missing_members
-from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec
+from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec, MissingExtraError
 from rpo_jax.envs.wrappers import vectorize
 from rpo_jax.errors import UsageError
 
@@ -93,10 +94,17 @@ def imported_module(name: str) -> str | None:
 def check_import_outside(name: str, directory: Path) -> None:
     """Refuses, as UsageError, an environment `name` (read from a run directory's config.json)
     whose module would be imported from inside `directory`: code shipped with a run directory
-    is never run. Found without importing anything."""
+    is never run, nor a module of Python's standard library, which holds no environment but
+    functions that config.json could name to run (`os:abort`). Found without importing anything."""
     module_name = imported_module(name)
     if module_name is None:
         return
+    top = module_name.partition(".")[0]
+    if top in sys.stdlib_module_names or top in sys.builtin_module_names:
+        raise UsageError(
+            f"{directory}: its environment {name!r} names {module_name}, a module of Python's standard library, which "
+            "holds no environment; its config.json was edited, so it is not run"
+        )
     inside = Path(directory).resolve()
     for location in module_locations(module_name):
         if location.resolve().is_relative_to(inside):
@@ -225,3 +233,26 @@ for _task in dmc_tasks.PLAYGROUND_NAMES:
     register_env(f"mjx-dmc/{_task}", lambda task=_task: playground.PlaygroundEnv(task), playground.SPECS[f"mjx-dmc/{_task}"])
 register_env("ballbalance", ballbalance.BallBalance, ballbalance.SPEC)
 del _name, _task
+
+
+# The optional extras (pyproject.toml): the names they provide (by prefix) and the modules they install.
+EXTRAS = {
+    "gym": (("gym/BipedalWalker-v3", "gymnasium/"), ("gymnasium", "Box2D")),
+    "dmc": (("dmc/",), ("envpool",)),
+    "pybullet": (("pybullet/",), ("pybullet", "pybullet_envs")),
+    "playground": (("mjx-dmc/",), ("mujoco_playground",)),
+}
+
+
+def missing_modules(extra: str) -> list[str]:
+    """The modules of `extra` that are not installed, found without importing them (one that
+    sys.modules holds as None cannot be imported either)."""
+    return [module for module in EXTRAS[extra][1] if sys.modules.get(module, ...) is None or not importlib.util.find_spec(module)]
+
+
+def check_installed(name: str) -> None:
+    """Refuses (MissingExtraError, one line) an environment whose extra is not installed, before
+    anything is built or printed."""
+    for extra, (prefixes, _) in EXTRAS.items():
+        if name.startswith(prefixes) and (missing := missing_modules(extra)):
+            raise MissingExtraError(name, missing[0], extra)

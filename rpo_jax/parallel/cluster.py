@@ -201,7 +201,7 @@ def leave(code: int, alone: bool) -> None:
     them all in C++, end in one line (`_watch`). Otherwise its run has finished, or stopped as every
     process's did (a diverged run): it says it finished. Either way it leaves without JAX's shutdown
     of the distributed client, process 0 last: after every collective is done, that shutdown's
-    teardown sometimes ended a process with a C++ abort (benchmarks/RESULTS.md). Nothing for one
+    teardown sometimes ended a process with a C++ abort (benchmarks/lab/notes/test-suite.md). Nothing for one
     process, or after a stop agreed before (`stop_watching`, which leaves at exit)."""
     from jax._src import distributed
 

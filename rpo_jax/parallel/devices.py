@@ -97,8 +97,10 @@ class Placement:
         return self.num_runs if self.kind != "runs" else round_up(self.num_runs, self.count)
 
     def describe(self) -> dict[str, Any]:
-        """What config.json and summary.json record of the placement."""
-        return {"placement": self.kind, "devices": self.count, "padded_runs": self.padded_runs, "processes": self.processes}
+        """What config.json and summary.json record of the placement; `padding_runs`: the copies of
+        runs added so that every device holds as many (0 where none were)."""
+        padding = self.padded_runs - self.num_runs
+        return {"placement": self.kind, "devices": self.count, "padding_runs": padding, "processes": self.processes}
 
     def make_trainer(self, config: Config, env: envs.Env) -> ppo.Trainer:
         """The trainer of one device's share of the runs; `config` is a plan's, validated already."""
@@ -323,6 +325,11 @@ def make_placement(
     if devices is not None and devices > len(available):
         raise UsageError(f"--devices {devices}: only {len(available)} local {available[0].platform} device(s) here")
     count = len(available) if devices is None else devices
+    if split_epochs and count == 1:  # nothing besides the first device to run the epochs on: it would change nothing
+        raise UsageError(
+            "--split-epochs runs the epochs on the devices besides the first; this process has 1"
+            + (" (--cpu-devices N makes the CPU N devices)" if available[0].platform == "cpu" else "")
+        )
     if shard_envs:
         check_env_split(config, count * processes)
     elif processes == 1:  # with several, every process must hold runs: they are padded instead

@@ -17,8 +17,9 @@ from typing import Any, Sequence
 import jax
 import numpy as np
 
-from rpo_jax import ppo
+from rpo_jax import envs, ppo
 from rpo_jax.config import Config
+from rpo_jax.errors import UsageError
 from rpo_jax.run import chunks
 from rpo_jax.run.directory import hold_lock, write_rows
 from rpo_jax.run.options import Processes, RunSpec
@@ -56,6 +57,7 @@ def save_run(
         state, metrics = jax.tree.map(lambda leaf: leaf[None], (state, metrics))
     state, metrics = jax.device_get((state, metrics))
     check_saved(trainer.config, state, metrics)
+    check_env_name(env, trainer.env.spec)
     spec = RunSpec(out=Path(out), seed=seed, num_seeds=len(state.update))
     plan = new_plan(env, trainer.config, spec, Processes(devices=1))
     existed = plan.out.exists()
@@ -87,6 +89,19 @@ def check_saved(config: Config, state: ppo.TrainState, metrics: ppo.Metrics) -> 
         raise ValueError(
             f"save_run: metrics are of {shape[-1]} updates of {shape[0]} run(s), the state of {len(state.update)} run(s) "
             f"and the config has {config.num_updates} updates; give the metrics of the training that made the state"
+        )
+
+
+def check_env_name(env: str, spec: envs.EnvSpec) -> None:
+    """Refuses an `env` name whose environment is not the trainer's (its spec differs): evaluate
+    and export rebuild the environment from the name, and its policy would not fit it."""
+    named = envs.env_spec(env)
+    fields = ("name", "observation_size", "action_size", "action_low", "action_high")
+    if any(tuple(np.ravel(getattr(named, f))) != tuple(np.ravel(getattr(spec, f))) for f in fields):
+        raise UsageError(
+            f"save_run: env={env!r} is {named.name} ({named.observation_size} observations, {named.action_size} actions), "
+            f"but the trainer's environment is {spec.name} ({spec.observation_size}, {spec.action_size}); give the name "
+            "make_env built the trainer's environment from"
         )
 
 

@@ -34,6 +34,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
+from rpo_jax.errors import stops_deferred
 from rpo_jax.parallel import cluster
 
 # The record's key holding the checksums; `restore` returns the record without it.
@@ -139,7 +140,8 @@ class Checkpointer:
         checksums = {"state": _state_checksums(state), "record": _record_checksum(record)}
         try:
             # orbax's writer threads log every failed write with its traceback; the error raised here says it once.
-            with _quiet_absl(logging.CRITICAL):
+            # A stop during the write waits for its end (`stops_deferred`).
+            with _quiet_absl(logging.CRITICAL), stops_deferred():
                 self.manager.save(
                     update,
                     args=ocp.args.Composite(

@@ -15,10 +15,8 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import dataclasses
-import functools
 import math
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterator, NamedTuple, Protocol, Sequence
@@ -29,16 +27,16 @@ import numpy as np
 from rpo_jax import envs, ppo
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.diagnostics import Diagnostics
-from rpo_jax.errors import Diverged, Interrupted, Terminated, UsageError, WriteFailed
+from rpo_jax.errors import Diverged, Interrupted, Terminated, TrackingFailed, UsageError, WriteFailed
 from rpo_jax.parallel import devices
 from rpo_jax.parallel.devices import is_primary
 from rpo_jax.run import eval_program, population, video
-from rpo_jax.run.checkpoint import CheckpointDamaged, Checkpointer, CheckpointMismatch, on_host
+from rpo_jax.run.checkpoint import Checkpointer
 from rpo_jax.run.directory import RunDir, hold_lock, write_rows
-from rpo_jax.run.plan import RunPlan, check_trained_with, config_record, describe_runs, run_label
+from rpo_jax.run.plan import RunPlan, config_record, describe_runs, run_label
 from rpo_jax.run.records import (
-    Clock, RunCheckpoints, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows, progress_metrics,
-    record_returns, summarise,
+    Clock, RunCheckpoints, check_layout, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows,
+    progress_metrics, record_returns, restore, summarise,
 )  # fmt: skip
 from rpo_jax.run.saved_policy import params_bytes
 
@@ -122,7 +120,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     if plan.capture_video:
         video.check_video(env, "--capture-video")
     if not is_primary():
-        with _interruptible(plan), _out_of_memory_refused():
+        with _interruptible(plan), _out_of_memory_refused(), _environment_failure(plan.env):
             return train_locked(plan, env, grid, (), None)
     existed = plan.out.exists()
     with hold_lock(plan.out):
@@ -131,7 +129,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
         if plan.resuming and plan.run_dir.is_finished():
             raise UsageError(f"--resume {plan.out}: that run has already finished (summary.json exists)")
         try:
-            with _interruptible(plan), _out_of_memory_refused():
+            with _interruptible(plan), _out_of_memory_refused(), _environment_failure(plan.env):
                 return train_locked(plan, env, grid, sinks, progress)
         except (Diverged, UsageError, OSError) as error:
             resumable = plan.resuming or plan.run_dir.has_checkpoint()
@@ -167,6 +165,8 @@ def train_locked(
     if plan.resuming:
         devices.check_resumable(run_dir.read_config(), placement, plan.out)
         check_layout(run_dir.read_config(), placement, plan)
+        if primary and plan.allow_relayout:  # config.json describes the layout the run goes on with
+            run_dir.write_config({**run_dir.read_config(), **placement.describe()})
     elif primary:
         run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
     compiled = compile_runs(plan, env, runs, placement)
@@ -176,42 +176,48 @@ def train_locked(
     if compiled.evolve:  # a resumed population: its lineage and hyperparameters as they were at the checkpoint
         population.update_hyperparameters(placement, compiled.state, runs)
         if primary:
-            run_dir.cut_lineage(compiled.record["update"])
+            run_dir.cut_lineage(compiled.record["update"], compiled.record.get("lineage_bytes"))
     for sink in sinks:
-        sink.open(run_dir, [run_label(run, swept) for run in runs], kept_rows)
+        sink.open(run_dir, [run_label(run, swept, plan.members) for run in runs], kept_rows)
     logged_returns: dict[str, list[list[float]]] = {name: [[] for _ in runs] for name in ("episode_return", "eval_return")}
     record_returns(kept_rows, logged_returns)
-    summary = None
     try:
-        state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+        try:
+            state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+        except BaseException:
+            for sink in sinks:
+                sink.close(None)
+            raise
         summary = {**summarise(plan, grid, runs, logged_returns, compiled.compile_seconds, seconds), **placement.describe()}
         if plan.pbt:
             summary["best_member"] = population.best_member(runs)
             summary["best_members"] = population.best_members(runs, plan.pbt["population"])  # one per population
     finally:
-        for sink in sinks:
-            sink.close(summary)
         compiled.trainer.close()
     params, obs_stats = placement.real_runs((state.params, compiled.trainer.observation_statistics(state)))
     if primary:
         run_dir.write_params(params_bytes(params, obs_stats))
         run_dir.write_summary(summary)
+    # Only now: a tracker that fails as it closes must not cost the run that trained.
+    close_sinks(sinks, summary, plan.out)
     return {"out": str(plan.out), **summary}
 
 
-def check_layout(saved_record: dict[str, Any], placement: devices.Placement, plan: RunPlan) -> None:
-    """Refuses, unless `plan.allow_relayout`, a resume on another number of processes or devices
-    than the run's (where `devices.check_resumable` lets it restore at all): each layout compiles
-    programs of its own shapes, which round differently, so the run would not continue as the
-    uninterrupted one."""
-    saved = (saved_record.get("processes", 1), saved_record.get("devices", 1))
-    if plan.allow_relayout or saved == (placement.processes, placement.count):
-        return
-    raise UsageError(
-        f"--resume {plan.out}: the run was trained by {saved[0]} process(es) on {saved[1]} device(s), and would resume by "
-        f"{placement.processes} on {placement.count}, which is not bit-exact; resume on its layout (--devices, "
-        "--cpu-devices), or add --allow-relayout to continue on this one"
-    )
+def close_sinks(sinks: Sequence[Sink], summary: dict[str, Any], out: Path) -> None:
+    """Closes every sink after training; the first that failed is TrackingFailed, the run kept."""
+    failures = []
+    for sink in sinks:
+        try:
+            sink.close(summary)
+        except Exception as error:
+            failures.append(error)
+    if failures:
+        error = failures[0]
+        what = f"{error.strerror}: {error.filename}" if isinstance(error, OSError) and error.strerror else repr(error)
+        raise TrackingFailed(
+            f"tracking failed after training ({what}); the run finished and is kept in {out} "
+            "(params.msgpack, summary.json), only the tracker's copy is incomplete"
+        )
 
 
 @contextlib.contextmanager
@@ -226,6 +232,19 @@ def _out_of_memory_refused() -> Iterator[None]:
         raise UsageError(
             f"out of memory on {jax.devices()[0].device_kind} ({detail}); lower --num-envs, --num-seeds or the sweep"
         ) from None
+
+
+@contextlib.contextmanager
+def _environment_failure(name: str) -> Iterator[None]:
+    """An exception raised by a host-side simulator inside the compiled program (JAX reports it
+    with the callback's traceback) as the one-line error of the environment that raised it."""
+    try:
+        yield
+    except jax.errors.JaxRuntimeError as error:
+        lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+        if not lines or "callback" not in lines[0].lower():
+            raise
+        raise UsageError(f"--env {name}: the environment raised {lines[-1]}") from None
 
 
 def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], placement: devices.Placement) -> Compiled:
@@ -246,7 +265,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
         chunk_program = compiler.submit(placement.chunk_program, trainer, chunk, abstract_state)
         restored = restore(plan, placement.checkpoint_layout(abstract_state)) if plan.resuming else None
         if restored is None:
-            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0}
+            state, record = init(keys, hparams), {"update": 0, "metrics_bytes": 0, "lineage_bytes": 0}
         else:
             state, record = placement.from_checkpoint(restored[0]), restored[1]
             if env.spec.runs_on_host:
@@ -256,7 +275,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     run_eval = (
         eval_program.compile_evaluation(trainer.config, trainer.actor, env, plan.eval_episodes) if plan.eval_every else None
     )
-    labels = [run_label(run, list(plan.grid[0])) for run in runs]
+    labels = [run_label(run, list(plan.grid[0]), plan.members) for run in runs]
     capture = None
     if plan.capture_video:
         policy = eval_program.run_policy(trainer.config, trainer.actor, env)
@@ -268,35 +287,6 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     return Compiled(
         trainer, placement, state, record, run_chunk, chunk, seconds, run_eval, eval_keys, capture, video_keys, evolve
     )
-
-
-def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
-    """The last checkpoint that restores, with its record, or None when the run was stopped
-    before its first. Each damaged checkpoint passed over is reported in one line."""
-    checkpointer = Checkpointer(plan.run_dir.checkpoints)
-    skipped: list[str] = []
-    try:
-        restored = checkpointer.restore_latest(abstract_state, skipped, functools.partial(record_problem, plan))
-    except (CheckpointMismatch, CheckpointDamaged) as error:
-        raise UsageError(f"--resume {plan.out}: {error}") from None
-    finally:
-        checkpointer.close()
-    for line in skipped:
-        print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
-    if restored is not None:
-        record = restored[1]
-        check_trained_with(plan, record.get("trained_with"), f"the checkpoint at update {record.get('update')} was trained with")
-    return restored
-
-
-def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any]) -> str | None:
-    """Why a restored checkpoint's record disagrees with its state or with metrics.jsonl (None:
-    it agrees), before metrics.jsonl is cut to the size it records."""
-    update = record.get("update")
-    counted = {int(count) for count in on_host(state.update).ravel()}
-    if not isinstance(update, int) or counted != {update}:
-        return f"its record says update {update!r}, its state {', '.join(map(str, sorted(counted)))}"
-    return plan.run_dir.metrics_problem(record.get("metrics_bytes"), record.get("metrics_sha256"), update)
 
 
 def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
@@ -334,7 +324,7 @@ def due_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint: 
     chunk = compiled.chunk
     return Due(
         compiled.run_eval is not None and plan.falls_due(plan.eval_updates, first_update, chunk),
-        bool(compiled.capture) and plan.falls_due(plan.video_updates, first_update, chunk),
+        bool(compiled.capture) and plan.video_due(first_update, chunk),
         bool(compiled.evolve) and population.step_due(plan, first_update, chunk),
         checkpoint,
     )

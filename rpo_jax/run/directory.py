@@ -47,6 +47,17 @@ RESULTS_FILE = "results.csv"
 EXPERIMENT_RUNS_DIR = "runs"
 
 
+# What config.json holds of what the runs act by and were trained with. SHA-256 checksums of each
+# go into summary.json, written with the parameters, and into every checkpoint's record, and are
+# checked at every read: a hand edit would change how a policy acts, or relabel its runs.
+PROTECTED_KEYS = ("env", "env_spec", "trained_with", "runs")
+
+
+def config_checksums(record: dict[str, Any]) -> dict[str, str]:
+    """The checksum of each of config.json's PROTECTED_KEYS in `record` (a missing key's too)."""
+    return {key: hashlib.sha256(json.dumps(record.get(key), sort_keys=True).encode()).hexdigest() for key in PROTECTED_KEYS}
+
+
 def env_directory(env: str) -> str:
     """`env`'s name as a file or directory name: / and an import path's : as _."""
     return env.replace("/", "_").replace(":", "_")
@@ -106,10 +117,26 @@ class RunDir:
         missing = [key for key in ("env", "config", "runs", "env_spec", "plan") if key not in keys]
         if missing:
             raise UsageError(f"{path} was not written by rpo_jax.train (no {', '.join(missing)})")
+        if self.is_finished():
+            self.check_config(record, self.read_summary().get("config_sha256"), SUMMARY_FILE)
         return record
 
+    def check_config(self, record: dict[str, Any], saved: Any, source: str) -> None:
+        """Refuses config.json's `record` where a protected part differs from the checksums
+        `source` (summary.json, a checkpoint) saved with what was trained (None: a run written
+        before they were saved)."""
+        if not isinstance(saved, dict):
+            return
+        for key, checksum in config_checksums(record).items():
+            if saved.get(key) != checksum:
+                raise UsageError(
+                    f"{self.path / CONFIG_FILE}: its {key!r} field differs from the one {source} records the run was "
+                    "trained with (edited afterwards); put it back"
+                )
+
     def write_summary(self, summary: dict[str, Any]) -> None:
-        write_json(self.path / SUMMARY_FILE, summary)
+        """summary.json, with the checksums of what config.json protects (`PROTECTED_KEYS`)."""
+        write_json(self.path / SUMMARY_FILE, {**summary, "config_sha256": config_checksums(self.read_config())})
 
     def trained_run(self, run: int | None) -> tuple[dict[str, Any], int]:
         """config.json's record and the index of the run that evaluate and export read: `run`, or
@@ -130,7 +157,15 @@ class RunDir:
         return best if isinstance(best, int) else 0
 
     def read_summary(self) -> dict[str, Any]:
-        return json.loads((self.path / SUMMARY_FILE).read_text())
+        """summary.json's record; UsageError, naming the file, where it is not a JSON object."""
+        path = self.path / SUMMARY_FILE
+        try:
+            summary = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise UsageError(f"{path} is not valid JSON ({error}); it was not written whole by rpo_jax.train") from None
+        if not isinstance(summary, dict):
+            raise UsageError(f"{path} was not written by rpo_jax.train (not a JSON object)")
+        return summary
 
     def write_params(self, data: bytes) -> None:
         write_bytes(self.path / PARAMS_FILE, data)
@@ -139,7 +174,7 @@ class RunDir:
         return (self.path / PARAMS_FILE).read_bytes()
 
     def read_metrics(self) -> list[dict[str, Any]]:
-        return [json.loads(line) for line in (self.path / METRICS_FILE).read_text().splitlines()]
+        return _json_rows(self.path / METRICS_FILE)
 
     def metrics_checksum(self, size: int) -> str:
         """SHA-256 of metrics.jsonl's first `size` bytes, for a checkpoint's record."""
@@ -165,9 +200,9 @@ class RunDir:
             return f"{METRICS_FILE}'s first {size} bytes are not its rows up to update {update}"
         return None
 
-    def _metrics_at_least(self, size: int) -> bytes:
-        """metrics.jsonl's bytes, refused where it has fewer than `size`: never padded."""
-        path = self.path / METRICS_FILE
+    def _metrics_at_least(self, size: int, name: str = METRICS_FILE) -> bytes:
+        """metrics.jsonl's (or `name`'s) bytes, refused where it has fewer than `size`: never padded."""
+        path = self.path / name
         data = path.read_bytes() if path.is_file() else None
         if size and (data is None or len(data) < size):
             found = "is missing" if data is None else f"has {len(data)} bytes"
@@ -195,18 +230,59 @@ class RunDir:
     def read_lineage(self) -> list[dict[str, Any]]:
         """pbt.jsonl's rows; none where the run has no population (or no step yet)."""
         path = self.path / LINEAGE_FILE
-        return [json.loads(line) for line in path.read_text().splitlines()] if path.is_file() else []
+        return _json_rows(path) if path.is_file() else []
 
-    def cut_lineage(self, update: int) -> None:
-        """Drops pbt.jsonl's rows after `update` (a resumed run's checkpoint): the resumed run
-        writes them again."""
-        kept = [row for row in self.read_lineage() if row["update"] <= update]
-        if (self.path / LINEAGE_FILE).is_file():
-            write_bytes(self.path / LINEAGE_FILE, "".join(json.dumps(row) + "\n" for row in kept).encode())
+    def lineage_size(self) -> int:
+        """pbt.jsonl's size, for a checkpoint's record (0: none yet)."""
+        path = self.path / LINEAGE_FILE
+        return path.stat().st_size if path.is_file() else 0
+
+    def lineage_checksum(self, size: int) -> str:
+        """SHA-256 of pbt.jsonl's first `size` bytes, for a checkpoint's record."""
+        return hashlib.sha256(self._metrics_at_least(size, LINEAGE_FILE)[:size]).hexdigest()
+
+    def lineage_problem(self, size: Any, checksum: Any) -> str | None:
+        """Why pbt.jsonl's first `size` bytes are not what the checkpoint recorded (None: they
+        are). A file shorter than that, or missing, lost rows: UsageError, as for metrics.jsonl."""
+        if not isinstance(size, int) or size < 0:
+            return f"its record's {LINEAGE_FILE} size is {size!r}"
+        if hashlib.sha256(self._metrics_at_least(size, LINEAGE_FILE)[:size]).hexdigest() != checksum:
+            return f"{LINEAGE_FILE}'s first {size} bytes differ from those checkpointed"
+        return None
+
+    def cut_lineage(self, update: int, size: int | None) -> None:
+        """Cuts pbt.jsonl back to the `size` bytes a resumed run's checkpoint recorded (and
+        `lineage_problem` verified); a checkpoint written before it recorded them: drops the rows
+        after its `update`. The resumed run writes them again."""
+        path = self.path / LINEAGE_FILE
+        if size is not None:
+            with open(path, "a+b") as lineage:
+                lineage.truncate(size)
+            return
+        try:
+            kept = [row for row in self.read_lineage() if row["update"] <= update]
+        except (ValueError, TypeError, KeyError) as error:
+            raise UsageError(f"{path} is damaged ({error}); this run cannot be resumed exactly: start it again") from None
+        if path.is_file():
+            write_bytes(path, "".join(json.dumps(row) + "\n" for row in kept).encode())
 
     def append_metrics(self) -> IO[bytes]:
         # Unbuffered, so that a failed write (a full disk) can be cut back to whole rows.
         return open(self.path / METRICS_FILE, "ab", buffering=0)
+
+
+def _json_rows(path: Path) -> list[dict[str, Any]]:
+    """The rows of a JSON-lines file of the run; UsageError naming the file and line where one is
+    not a JSON object (a file cut short, overwritten or not text)."""
+    rows = []
+    for number, line in enumerate(path.read_bytes().splitlines(), start=1):
+        try:
+            rows.append(json.loads(line))
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise UsageError(f"{path}: line {number} is not a JSON row ({error}); rpo_jax.train did not write it so") from None
+        if not isinstance(rows[-1], dict):
+            raise UsageError(f"{path}: line {number} is not a JSON object; rpo_jax.train did not write it so")
+    return rows
 
 
 def _row_update(line: bytes) -> int | None:

@@ -18,8 +18,8 @@ from typing import Annotated, Literal, Sequence, TypeVar
 
 import tyro
 
-from rpo_jax.config import PRESETS
-from rpo_jax.errors import UsageError
+from rpo_jax.config import PRESETS, Config
+from rpo_jax.errors import UsageError, check_no_shadowing
 from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, SWEEPABLE
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -61,7 +61,7 @@ class RunSpec:
     """draw episodes of each run's deterministic policy into OUT/videos (and TensorBoard, W&B) during training"""
     capture_video_every: int | None = None
     """with --capture-video: every N env steps per run (in whole chunks of updates) and at the end; None: 4 per run"""
-    capture_video_episodes: int = 2
+    capture_video_episodes: int = 1
     """with --capture-video: episodes per video"""
 
 
@@ -134,8 +134,9 @@ class Processes(CompileCache):
     distributed: bool = False
     """join the processes of the cluster job JAX detects (SLURM, Open MPI), which gives the three flags above where not given"""
     allow_relayout: bool = False
-    """when a run resumes: continue on another number of devices or processes than it was trained on; not bit-exact
-    (each layout compiles programs of its own shapes, which round differently), so refused without this flag"""
+    """when a run resumes: continue on another number of devices than it was trained on (the number of processes stays
+    the run's); not bit-exact (each layout compiles programs of its own shapes, which round differently), so refused
+    without this flag"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +152,37 @@ class TrainedRun:
 PLACEMENT_FIELDS = ("devices", "shard_envs", "split_epochs", "shared_pools")
 # The flags that make several processes train together.
 JOINING_FIELDS = ("coordinator", "num_processes", "process_id", "coordinator_timeout", "distributed")
+
+
+# Flags of rpo_jax.train that an experiment does not take: its jobs choose the algorithm and the
+# sweeps, and it trains in one process. The Job* dataclasses hide them from its --help.
+NOT_FOR_EXPERIMENTS = ("sweep", "algo", *JOINING_FIELDS)
+
+
+@dataclasses.dataclass(frozen=True)
+class JobConfig(Config):
+    algo: tyro.conf.Suppress[str] = "rpo"
+
+
+@dataclasses.dataclass(frozen=True)
+class JobRunSpec(RunSpec):
+    sweep: tyro.conf.Suppress[tuple[str, ...]] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class JobProcesses(Processes):
+    coordinator: tyro.conf.Suppress[str | None] = None
+    num_processes: tyro.conf.Suppress[int | None] = None
+    process_id: tyro.conf.Suppress[int | None] = None
+    coordinator_timeout: tyro.conf.Suppress[int] = Processes.coordinator_timeout
+    distributed: tyro.conf.Suppress[bool] = False
+
+
+def refuse_train_flags(argv: Sequence[str]) -> None:
+    """Refuses, in one line, a flag of rpo_jax.train that an experiment does not take."""
+    for name in NOT_FOR_EXPERIMENTS:
+        if any(arg == flag(name) or arg.startswith(f"{flag(name)}=") for arg in argv):
+            raise UsageError(f"{flag(name)} is rpo_jax.train's: an experiment's jobs choose algorithm and sweeps, in one process")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,7 +221,9 @@ Args = TypeVar("Args")
 def parse(cls: type[Args], argv: Sequence[str], default: Args | None, prog: str) -> Args:
     """The flags as `cls` (a dataclass nesting the spec's), starting from `default` (None: the
     class's defaults); bad input
-    raises UsageError with tyro's message as one line."""
+    raises UsageError with tyro's message as one line. Every command parses first: one started
+    with a module imported from the current directory stops here (`check_no_shadowing`)."""
+    check_no_shadowing()
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):

@@ -99,6 +99,16 @@ class RunPlan:
         done = first_update + chunk
         return done // every != first_update // every or done == self.config.num_updates
 
+    def video_due(self, first_update: int, chunk: int) -> bool:
+        """Whether the chunk after `first_update` ends with a video: where a multiple of
+        `video_updates` falls in it, or at the last update unless a scheduled video was drawn
+        within the last half interval (two videos a few thousand steps apart show one policy)."""
+        every, done = self.video_updates, first_update + chunk
+        if done // every != first_update // every:
+            return True
+        last_scheduled = done // every * every
+        return done == self.config.num_updates and (last_scheduled == 0 or done - last_scheduled >= every / 2)
+
     @property
     def video_updates(self) -> int | None:
         """Updates between videos; None when they are off."""
@@ -114,6 +124,11 @@ class RunPlan:
             return None
         fields = pbt.parse_fields(self.pbt["pbt_fields"], self.config.algo)
         return pbt.Rule(fields, self.pbt["pbt_quantile"], self.pbt["pbt_explore"])
+
+    @property
+    def members(self) -> int | None:
+        """The members of each population with population-based training; None without."""
+        return None if self.pbt is None else self.pbt["population"]
 
     @property
     def populations(self) -> int:
@@ -223,6 +238,7 @@ def check_run(env: str, config: Config, run: RunSpec) -> list[dict[str, float]]:
     """Refuses the bad fields of `run` with a valid `config` (its sweep's points are validated
     here); returns the sweep's grid."""
     envs.env_spec(env)  # an unknown name is refused here, before anything is written
+    registry.check_installed(env)  # and one whose extra is missing, before anything is printed
     if run.num_seeds < 1:
         raise UsageError(f"--num-seeds must be >= 1, got {run.num_seeds}")
     check_seeds(run.seed, run.num_seeds)
@@ -397,9 +413,11 @@ def point_label(run: dict[str, Any], swept: Sequence[str]) -> str:
     return "-".join(f"{name}={run['hparams'][name]:g}" for name in swept)
 
 
-def run_label(run: dict[str, Any], swept: Sequence[str]) -> str:
-    """A run's name among its siblings: its sweep point and seed ("rpo_alpha=0.1-seed_1")."""
-    return "-".join(filter(None, (point_label(run, swept), f"seed_{run['seed']}")))
+def run_label(run: dict[str, Any], swept: Sequence[str], members: int | None = None) -> str:
+    """A run's name among its siblings: its sweep point and seed ("rpo_alpha=0.1-seed_1"); with
+    `members` per population, a population member's, its population first ("population_1-seed_6")."""
+    population = f"population_{run['run'] // members}" if members else ""
+    return "-".join(filter(None, (population, point_label(run, swept), f"seed_{run['seed']}")))
 
 
 def versions() -> dict[str, str]:

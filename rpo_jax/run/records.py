@@ -1,11 +1,15 @@
 """What the host makes of each chunk's numbers: metrics.jsonl's rows, the first non-finite
 quantity of a diverged run, summary.json's returns over the runs and their spread, the run's
 seconds by what they were spent on (`Clock`), and the checkpoints between chunks with their
-records, the one a stop leaves included (`RunCheckpoints`)."""
+records, the one a stop leaves included (`RunCheckpoints`), and the latest good one restored
+with its record checked (`restore`)."""
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import math
+import sys
 import time
 from typing import Any, Iterator, Sequence
 
@@ -15,11 +19,12 @@ import numpy as np
 from rpo_jax import ppo
 from rpo_jax.config import SWEEPABLE
 from rpo_jax.diagnostics import Diagnostics
+from rpo_jax.errors import UsageError
 from rpo_jax.parallel import devices
-from rpo_jax.run.checkpoint import Checkpointer
-from rpo_jax.run.directory import sync
-from rpo_jax.run.plan import RunPlan, training_record
-from rpo_jax.scores import sample_std, tail_mean
+from rpo_jax.run.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
+from rpo_jax.run.directory import config_checksums, sync
+from rpo_jax.run.plan import RunPlan, check_trained_with, training_record
+from rpo_jax.scores import episode_ended, final_return, sample_std
 
 
 def logged_rows(
@@ -53,8 +58,12 @@ def logged_rows(
 def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) -> dict[str, float]:
     """What a progress function gets after a chunk: each of the trainer's metrics at the chunk's
     last update (`episode_return`, `policy_entropy`, ...) and `eval_return` where the chunk ended
-    with an evaluation, as means over the runs, and `sps`, steps/s over all runs."""
+    with an evaluation, as means over the runs (`episode_return` over those that have ended an
+    episode, NaN before any has), and `sps`, steps/s over all runs."""
     values = {name: float(np.mean(value[:, -1])) for name, value in vars(metrics).items() if name != "env_steps"}
+    # Over the runs that have ended an episode (`scores.episode_ended`); NaN while none has.
+    ended = (metrics.episodes_finished[:, -1] > 0) | (metrics.episode_length[:, -1] > 0)
+    values["episode_return"] = float(np.mean(metrics.episode_return[ended, -1])) if ended.any() else math.nan
     if eval_returns is not None:
         values["eval_return"] = float(np.mean(eval_returns))
     return {**values, "sps": sps}
@@ -104,11 +113,14 @@ def statistic_name(name: str) -> str:
     return f"{STATISTICS.get(owner, owner)} {field} ({name})"
 
 
-def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[list[float]]]) -> None:
-    """Adds the rows' training returns and evaluation returns, where a row has one, to each run's."""
+def record_returns(rows: list[dict[str, Any]], logged_returns: dict[str, list[list[float | None]]]) -> None:
+    """Adds the rows' training returns (None before a run's first ended episode: `scores.episode_ended`)
+    and evaluation returns, where a row has one, to each run's."""
     for row in rows:
         for name, returns in logged_returns.items():
-            if name in row:
+            if name == "episode_return":
+                returns[row["run"]].append(row[name] if episode_ended(row) else None)
+            elif name in row:
                 returns[row["run"]].append(row[name])
 
 
@@ -121,7 +133,7 @@ def summarise(
     config = plan.config
     names = ["final_return", "eval_return"] if plan.eval_every else ["final_return"]
     for index, run in enumerate(runs):
-        run["final_return"] = tail_mean(logged_returns["episode_return"][index])
+        run["final_return"] = final_return(logged_returns["episode_return"][index])
         if plan.eval_every:
             run["eval_return"] = logged_returns["eval_return"][index][-1]
     grid_summary = []
@@ -148,12 +160,13 @@ def summarise(
 
 def spread(runs: list[dict[str, Any]], names: Sequence[str]) -> dict[str, float | int | None]:
     """`NAME_mean`, `NAME_std` (`scores.sample_std`; None, JSON's null, for one run) and
-    `NAME_n`, the runs they are over, of each run's NAME."""
+    `NAME_n`, the runs they are over, of each run's NAME: those that have one (a run in which
+    no episode ended has no final return), the mean None where none has."""
     found: dict[str, float | int | None] = {}
     for name in names:
-        values = [run[name] for run in runs]
-        std = float(sample_std(values))
-        found[f"{name}_mean"], found[f"{name}_n"] = float(np.mean(values)), len(values)
+        values = [run[name] for run in runs if run[name] is not None]
+        std = float(sample_std(values)) if values else np.nan
+        found[f"{name}_mean"], found[f"{name}_n"] = float(np.mean(values)) if values else None, len(values)
         found[f"{name}_std"] = None if np.isnan(std) else std
     return found
 
@@ -190,12 +203,13 @@ class RunCheckpoints:
         self.plan, self.placement, self.checkpointer, self.metrics_file, self.clock = (
             plan, placement, checkpointer, metrics_file, clock,
         )  # fmt: skip
-        self.logged: tuple[ppo.TrainState, int, int, dict[str, float]] | None = None  # what a stop would write
+        self.logged: tuple[ppo.TrainState, int, int, dict[str, float], int] | None = None  # what a stop would write
 
     def hold(self, state: ppo.TrainState, update: int) -> None:
         """After a chunk's rows are logged: `state` after `update`, with metrics.jsonl's size and the
-        run's seconds then (not the queued chunk's, which the resume trains again)."""
-        self.logged = (state, update, self.metrics_file.tell() if self.metrics_file else 0, dict(self.clock.seconds))
+        run's seconds then (not the queued chunk's, which the resume trains again), and pbt.jsonl's size."""
+        metrics_bytes = self.metrics_file.tell() if self.metrics_file else 0
+        self.logged = (state, update, metrics_bytes, dict(self.clock.seconds), self.plan.run_dir.lineage_size())
 
     def save(self, state: ppo.TrainState, update: int) -> int:
         """The scheduled checkpoint of `state` after `update`; returns `update`."""
@@ -204,10 +218,12 @@ class RunCheckpoints:
         return update
 
     def write(
-        self, state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None
+        self, state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None,
+        lineage_bytes: int | None = None,
     ) -> None:  # fmt: skip
         """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
-        run's seconds and what it was trained with; its own seconds counted as checkpointing. The
+        run.s seconds and what it was trained with, and a population.s pbt.jsonl.s size and checksum; its own
+        seconds counted as checkpointing. The
         size and seconds are those at the call unless given (a stop's checkpoint of an earlier
         chunk: the rows logged after its size are cut at the resume)."""
         clock, metrics_file = self.clock, self.metrics_file
@@ -215,11 +231,14 @@ class RunCheckpoints:
         synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
         metrics_bytes = synced if metrics_bytes is None else metrics_bytes
         metrics_sha256 = self.plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
-        self.checkpointer.save(
-            update, self.placement.checkpoint_state(state),
-            {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256,
-             **(seconds or clock.seconds), "trained_with": training_record(self.plan)},
-        )  # fmt: skip
+        record = {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256}
+        if self.plan.pbt and metrics_file:  # the lineage, protected as metrics.jsonl is
+            lineage_bytes = self.plan.run_dir.lineage_size() if lineage_bytes is None else lineage_bytes
+            record.update(lineage_bytes=lineage_bytes, lineage_sha256=self.plan.run_dir.lineage_checksum(lineage_bytes))
+        if metrics_file:  # what config.json protects, checked on resume
+            record["config_sha256"] = config_checksums(self.plan.run_dir.read_config())
+        record.update(**(seconds or clock.seconds), trained_with=training_record(self.plan))
+        self.checkpointer.save(update, self.placement.checkpoint_state(state), record)
         clock.lap("checkpoint_seconds")
 
 
@@ -234,3 +253,52 @@ def checkpoint_on_stop(checkpoints: RunCheckpoints) -> Iterator[RunCheckpoints]:
             with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
                 checkpoints.write(*checkpoints.logged)
         raise
+
+
+def check_layout(saved_record: dict[str, Any], placement: devices.Placement, plan: RunPlan) -> None:
+    """Refuses, unless `plan.allow_relayout`, a resume on another number of processes or devices
+    than the run's (where `devices.check_resumable` lets it restore at all): each layout compiles
+    programs of its own shapes, which round differently, so the run would not continue as the
+    uninterrupted one."""
+    saved = (saved_record.get("processes", 1), saved_record.get("devices", 1))
+    if plan.allow_relayout or saved == (placement.processes, placement.count):
+        return
+    raise UsageError(
+        f"--resume {plan.out}: the run was trained by {saved[0]} process(es) on {saved[1]} device(s), and would resume by "
+        f"{placement.processes} on {placement.count}, which is not bit-exact; resume on its layout (--devices, "
+        "--cpu-devices), or add --allow-relayout to continue on this one"
+    )
+
+
+def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
+    """The last checkpoint that restores, with its record, or None when the run was stopped
+    before its first. Each damaged checkpoint passed over is reported in one line."""
+    checkpointer = Checkpointer(plan.run_dir.checkpoints)
+    skipped: list[str] = []
+    try:
+        restored = checkpointer.restore_latest(abstract_state, skipped, functools.partial(record_problem, plan))
+    except (CheckpointMismatch, CheckpointDamaged) as error:
+        raise UsageError(f"--resume {plan.out}: {error}") from None
+    finally:
+        checkpointer.close()
+    for line in skipped:
+        print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
+    if restored is not None:
+        record = restored[1]
+        check_trained_with(plan, record.get("trained_with"), f"the checkpoint at update {record.get('update')} was trained with")
+        source = f"the checkpoint at update {record.get('update')}"
+        plan.run_dir.check_config(plan.run_dir.read_config(), record.get("config_sha256"), source)
+    return restored
+
+
+def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any]) -> str | None:
+    """Why a restored checkpoint's record disagrees with its state or with metrics.jsonl (None:
+    it agrees), before metrics.jsonl is cut to the size it records."""
+    update = record.get("update")
+    counted = {int(count) for count in on_host(state.update).ravel()}
+    if not isinstance(update, int) or counted != {update}:
+        return f"its record says update {update!r}, its state {', '.join(map(str, sorted(counted)))}"
+    problem = plan.run_dir.metrics_problem(record.get("metrics_bytes"), record.get("metrics_sha256"), update)
+    if problem is None and "lineage_bytes" in record:  # checkpoints of populations, since they record it
+        problem = plan.run_dir.lineage_problem(record["lineage_bytes"], record.get("lineage_sha256"))
+    return problem

@@ -42,6 +42,8 @@ def make_policy(trainer: ppo.Trainer, state: ppo.TrainState, run: int | None = N
             f"{'a state of ' + str(state.update.shape[0]) + ' runs' if batched else 'the state of one run'}"
         )
     if batched:
+        if not 0 <= run < state.update.shape[0]:  # numpy's indexing would wrap a negative one, JAX's clamp any
+            raise UsageError(f"make_policy: run must be in [0, {state.update.shape[0]}), got {run}")
         actor_params, stats = jax.tree.map(lambda leaf: leaf[run], (actor_params, stats))
     spec = trainer.env.spec
     return jitted_policy(trainer.config, spec.action_size, spec.action_low, spec.action_high, actor_params, stats)

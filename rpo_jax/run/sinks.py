@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import io
+import math
 import shutil
 import time
 from pathlib import Path
@@ -149,7 +150,8 @@ class ProgressDisplay:
 
     def __call__(self, steps: int, metrics: dict[str, float]) -> None:
         sps, episode_return, entropy = metrics["sps"], metrics["episode_return"], metrics["policy_entropy"]
-        line = f"steps {steps:>11,}  sps {sps:>10,.0f}  return {episode_return:8.2f}  entropy {entropy:7.3f}"
+        shown = "     n/a" if math.isnan(episode_return) else f"{episode_return:8.2f}"  # NaN: no episode has ended yet
+        line = f"steps {steps:>11,}  sps {sps:>10,.0f}  return {shown}  entropy {entropy:7.3f}"
         if self.compiling and not self.quiet and not self.live:
             self.console.print(f"compiled and first chunk done after {time.perf_counter() - self.started:.1f} s", highlight=False)
         self.compiling = False

@@ -46,22 +46,24 @@ from rpo_jax.errors import UsageError
 from rpo_jax.run.directory import VIDEOS_DIR
 from rpo_jax.run.files import written_whole
 
-WIDTH, HEIGHT = 480, 360
+WIDTH, HEIGHT = 320, 240
+MAX_FPS = 30  # frames drawn per second of simulated time, for the MuJoCo-based JAX environments
 
 
 @dataclasses.dataclass
 class Episode:
     """One drawn episode: a frame [HEIGHT, WIDTH, 3] uint8 per state from the reset to its end
-    (steps + 1 frames; `DrawnFrames`, drawn as they are read), its undiscounted return and the
-    frame rate of simulated time."""
+    (steps + 1 frames, or every `frame_stride`-th state's; `DrawnFrames`, drawn as they are read),
+    its undiscounted return and the frame rate of simulated time."""
 
     frames: Sequence[np.ndarray]
     total: float
     fps: float
+    step_count: int | None = None  # where not every state is drawn; else len(frames) - 1
 
     @property
     def steps(self) -> int:
-        return len(self.frames) - 1
+        return len(self.frames) - 1 if self.step_count is None else self.step_count
 
 
 def drawn_by_host(env: envs.Env) -> bool:
@@ -80,7 +82,7 @@ def check_video(env: envs.Env, flag: str) -> None:
     try:
         import imageio.v2  # noqa: F401
     except ImportError:
-        raise UsageError(f"{flag} needs the video extra: pip install -e '.[video]'") from None
+        raise UsageError(f"{flag} needs the video extra: pip install '.[video]'") from None
     try:
         if drawn_by_host(env):
             simulator = env.make_drawn(0, WIDTH, HEIGHT)
@@ -175,14 +177,16 @@ def position_rollout(
 
 
 def drawn_episodes(env: envs.Env, qpos: np.ndarray, rewards: np.ndarray, ended: np.ndarray) -> list[Episode]:
-    """The episodes of `position_rollout`'s arrays, each cut at its end and drawn."""
-    fps = 1.0 / env.control_dt
+    """The episodes of `position_rollout`'s arrays, each cut at its end and drawn at most
+    `MAX_FPS` frames per second of simulated time: a frame costs about 15 ms on a CPU whatever
+    its size, so Cartpole's 60 steps a second are drawn every second step."""
+    stride = max(1, round(1.0 / (env.control_dt * MAX_FPS)))
     result = []
     for index in range(qpos.shape[1]):
         steps = int(np.argmax(ended[:, index])) + 1
-        positions = qpos[: steps + 1, index]
+        positions = qpos[: steps + 1 : stride, index]
         frames = DrawnFrames(len(positions), lambda start, stop, positions=positions: draw(env, positions[start:stop]))
-        result.append(Episode(frames, float(rewards[:steps, index].sum()), fps))
+        result.append(Episode(frames, float(rewards[:steps, index].sum()), 1.0 / (env.control_dt * stride), steps))
     return result
 
 
@@ -244,10 +248,12 @@ def draw(env: envs.Renderable, positions: Iterable[np.ndarray]) -> Iterator[np.n
     the model's first camera (MuJoCo's free camera, closer in, for a model without one)."""
     import mujoco
 
-    model = render_model(env)
+    model = copy.copy(render_model(env))
+    # Without multisampling: on a CPU (Mesa's llvmpipe) MuJoCo's default 4 samples took a 320x240
+    # Cartpole frame from 6.7 to 16.6 ms.
+    model.vis.quality.offsamples = 0
     if not model.nlight:
-        # A copy lit by a brighter headlight: models written for simulation often have no lights.
-        model = copy.copy(model)
+        # Lit by a brighter headlight: models written for simulation often have no lights.
         model.vis.headlight.ambient[:] = 0.45
         model.vis.headlight.diffuse[:] = 0.7
     data, camera = mujoco.MjData(model), mujoco.MjvCamera()

@@ -40,7 +40,7 @@ class WandbSink:
         try:
             import wandb
         except ImportError:
-            raise UsageError("--track wandb needs the wandb extra: pip install -e '.[wandb]'") from None
+            raise UsageError("--track wandb needs the wandb extra: pip install '.[wandb]'") from None
         self.wandb = wandb
         self.project, self.entity, self.mode, self.group = project, entity, mode, group
         self.runs: list[Any] = []
@@ -127,6 +127,8 @@ def finished_run_failure(run: Any, logged: int) -> OSError | None:
             run.finish()
     except OSError as error:
         return OSError(error.errno, error.strerror, str(path.parent))
+    if run.disabled:  # WANDB_MODE=disabled: W&B writes no file at all
+        return None
     deadline = time.monotonic() + FILE_TIMEOUT_SECONDS
     while True:
         history, ended, why = run_file_contents(path)
