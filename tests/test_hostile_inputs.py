@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from point_mass import SPEC, PointMass, PointMassSim
+from point_mass_runs import one_line
 
 from rpo_jax import envs, evaluate, experiment, export, train
 from rpo_jax.envs import registry
@@ -54,12 +55,6 @@ def copied(finished, tmp_path) -> Path:
         if path.is_file():
             (out / path.name).write_bytes(path.read_bytes())
     return out
-
-
-def one_line(capsys) -> str:
-    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert len(lines) == 1, lines
-    return lines[0]
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 import pytest
 from point_mass import PointMass
+from point_mass_runs import one_line
 
 import rpo_jax
 from rpo_jax import envs, errors, evaluate, export, train
@@ -42,12 +43,6 @@ def point_mass():
     yield
     registry._REGISTRY.clear()
     registry._REGISTRY.update(saved)
-
-
-def one_line(capsys) -> str:
-    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert len(lines) == 1, lines
-    return lines[0]
 
 
 # --------------------------------------------------------------------------------------------
