@@ -104,10 +104,10 @@ class RunPlan:
         `video_updates` falls in it, or at the last update unless a scheduled video was drawn
         within the last half interval (two videos a few thousand steps apart show one policy)."""
         every, done = self.video_updates, first_update + chunk
-        if done // every != first_update // every:
-            return True
-        last_scheduled = done // every * every
-        return done == self.config.num_updates and (last_scheduled == 0 or done - last_scheduled >= every / 2)
+        if not self.falls_due(every, first_update, chunk):
+            return False
+        last_scheduled = done // every * every  # in this chunk where it is past first_update
+        return last_scheduled > first_update or last_scheduled == 0 or done - last_scheduled >= every / 2
 
     @property
     def video_updates(self) -> int | None:
