@@ -19,7 +19,7 @@ from rpo_jax.config import Config
 class Diagnostics:
     """Per-update counts of non-finite numbers, for the runner's guard; not logged, so that
     metrics.jsonl keeps its rows. Observations and rewards are the rollout's, as the trainer
-    saw them (normalised); parameters and statistics are those after the update. A huge but
+    saw them (`count_rollout`); parameters and statistics are those after the update. A huge but
     finite observation overflows its normaliser's variance to inf while the normalised
     observations stay finite (zeros), so the statistics are counted apart: {"obs_stats.var": n}."""
 
@@ -39,13 +39,25 @@ class Diagnostics:
         return cls(*rollout_counts, count_nonfinite(*jax.tree.leaves(state.params)), statistics)
 
 
+# The magnitude past which an observation's square overflows float32, as the observation
+# normaliser's variance does. Observations read raw (--no-normalize-obs) are counted past it, so
+# that such a run stops as a normalised one does rather than train on them.
+OVERFLOWING_OBSERVATION = float(jnp.sqrt(jnp.finfo(jnp.float32).max))
+
+
 def count_nonfinite(*arrays: jax.Array) -> jax.Array:
     return sum((~jnp.isfinite(x)).sum() for x in arrays)
 
 
-def count_rollout(traj: Any) -> tuple[jax.Array, jax.Array]:
-    """The non-finite observations and rewards of a rollout, for `Diagnostics.of`."""
-    return count_nonfinite(traj.obs, traj.final_obs), count_nonfinite(traj.reward, traj.episode_return)
+def count_rollout(traj: Any, config: Config) -> tuple[jax.Array, jax.Array]:
+    """The rollout's non-finite observations (read raw: also those past `OVERFLOWING_OBSERVATION`)
+    and rewards, for `Diagnostics.of`."""
+    observations = (traj.obs, traj.final_obs)
+    if config.normalize_obs:  # normalised observations are clipped: only NaN or inf can reach them
+        observation_count = count_nonfinite(*observations)
+    else:
+        observation_count = sum((~(jnp.abs(x) <= OVERFLOWING_OBSERVATION)).sum() for x in observations)
+    return observation_count, count_nonfinite(traj.reward, traj.episode_return)
 
 
 def running_statistics(state: Any, config: Config) -> dict[str, envs.RunningMeanStd]:

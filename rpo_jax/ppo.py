@@ -214,7 +214,7 @@ def collect(trainer: Trainer, state: TrainState) -> Collected:
     batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
     episodes = finished_episodes(traj, state, trainer.axis_name)
     state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
-    return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj))
+    return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj, config))
 
 
 def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:

@@ -113,3 +113,13 @@ def test_a_huge_finite_value_that_overflows_a_normaliser_stops_the_run(tmp_path,
     assert line.startswith(f"error: training diverged: non-finite {statistic} at update 1 in run 0 "), line
     assert line.endswith(f"{out} removed (no checkpoint to resume)"), line
     assert not out.exists()
+
+
+def test_a_huge_observation_read_raw_stops_the_run(tmp_path, capsys):
+    """With --no-normalize-obs no normaliser overflows, so the observation itself is counted."""
+    out = tmp_path / "run"
+    flags = ["--env", "test/huge_observation", *TINY_FLAGS_ANY_ENV, "--checkpoint-every", "0", "--no-normalize-obs"]
+    assert train.main([*flags, "--out", str(out)]) == 1
+    line = one_line(capsys)
+    assert line.startswith("error: training diverged: non-finite observation (NaN, inf or past ±1.8e+19) at update 1 "), line
+    assert not out.exists()

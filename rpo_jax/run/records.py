@@ -18,7 +18,7 @@ import numpy as np
 
 from rpo_jax import ppo
 from rpo_jax.config import SWEEPABLE
-from rpo_jax.diagnostics import Diagnostics
+from rpo_jax.diagnostics import OVERFLOWING_OBSERVATION, Diagnostics
 from rpo_jax.errors import UsageError
 from rpo_jax.parallel import devices
 from rpo_jax.run.checkpoint import CheckpointDamaged, CheckpointMismatch, Checkpointer, on_host
@@ -71,11 +71,12 @@ def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) 
 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: Diagnostics) -> tuple[int, int, list[str]] | None:
     """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
-    or inf, naming what went non-finite first: observation, reward, loss (any logged metric),
+    or inf, naming what went non-finite first: observation (or one overflowing float32 when
+    squared), reward, loss (any logged metric),
     parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
     updates of the chunk]."""
     found = {
-        "observation": diagnostics.nonfinite_observations > 0,
+        f"observation (NaN, inf or past ±{OVERFLOWING_OBSERVATION:.1e})": diagnostics.nonfinite_observations > 0,
         "reward": diagnostics.nonfinite_rewards > 0,
         "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
         "parameters": diagnostics.nonfinite_parameters > 0,
