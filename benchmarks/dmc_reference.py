@@ -79,9 +79,9 @@ def layouts() -> dict:
 
 
 def envpool_starts() -> dict:
-    from rpo_jax.envs.dmc import DmcSimulators
+    from rpo_jax.envs.dmc import simulators
 
-    return {task: DmcSimulators(task, SAME_START_EPISODES, SAME_START_SEED).reset().tolist() for task in SAME_START_TASKS}
+    return {task: simulators(task, SAME_START_EPISODES, SAME_START_SEED).reset().tolist() for task in SAME_START_TASKS}
 
 
 def joint_states(task: str, obs: np.ndarray, sign: float) -> tuple[np.ndarray, np.ndarray]:

@@ -26,7 +26,8 @@ ActFn = Callable[..., jax.Array]
 class Policy:
     """The actor of a run with its parameters and observation statistics, acting within the
     environment's action bounds [low, high]. The config says how observations are normalised and
-    which distribution the actor's outputs parameterise."""
+    which distribution the actor's outputs parameterise. `part`: the policy's part of the
+    environment's observation (`EnvSpec.part`), None where it reads all `observation_size`."""
 
     config: Config = struct.field(pytree_node=False)
     actor: Actor = struct.field(pytree_node=False)
@@ -34,20 +35,50 @@ class Policy:
     obs_stats: envs.RunningMeanStd
     low: jax.Array
     high: jax.Array
+    part: tuple[int, int] | None = struct.field(pytree_node=False, default=None)
+    observation_size: int = struct.field(pytree_node=False, default=0)
 
     def __call__(self, obs: jax.Array, key: jax.Array | None = None, deterministic: bool = True) -> jax.Array:
         """The action for a raw observation [obs_size] or batch [B, obs_size]: normalised by the
         training statistics as in training, the policy's location (the Gaussian's mean, the
         Laplace's and Gumbel's location; the default, which every evaluation and export uses) or,
         with `deterministic=False`, a sample drawn with `key`, clipped to the environment's bounds
-        as the environment would."""
+        as the environment would. With observations of named parts, `obs` is the policy's part
+        (a robot's own sensors) or the whole observation, of which it reads that part."""
         if not deterministic and key is None:
             raise ValueError("a sampled action (deterministic=False) needs a key: policy(obs, key, deterministic=False)")
+        obs, stats = self.policy_part(obs)
         if self.config.normalize_obs:
-            obs = envs.normalize_observation(obs, self.obs_stats, self.config.obs_clip)
+            obs = envs.normalize_observation(obs, stats, self.config.obs_clip)
         loc, log_scale = self.actor.apply(self.params, obs)
         action = loc if deterministic else policy_distribution(loc, log_scale, self.config.dist).sample(seed=key)
         return jnp.clip(action, self.low, self.high)
+
+    def policy_part(self, obs: jax.Array) -> tuple[jax.Array, envs.RunningMeanStd]:
+        """The policy's part of `obs` (unchanged where it is that part already) and of the statistics."""
+        if self.part is None:
+            return obs, self.obs_stats
+        start, stop = self.part
+        stats = part_statistics(self.obs_stats, self.part)
+        if obs.shape[-1] == self.observation_size:
+            obs = obs[..., start:stop]
+        elif obs.shape[-1] != stop - start:
+            raise ValueError(f"the policy takes {stop - start} or {self.observation_size} observations, got {obs.shape[-1]}")
+        return obs, stats
+
+
+def part_statistics(stats: envs.RunningMeanStd, part: tuple[int, int] | None) -> envs.RunningMeanStd:
+    """The observation statistics of the part [start, stop) of the observation (all: None)."""
+    if part is None:
+        return stats
+    return stats.replace(mean=stats.mean[..., part[0] : part[1]], var=stats.var[..., part[0] : part[1]])
+
+
+def policy_of(config: Config, spec: envs.EnvSpec, params: Any, obs_stats: envs.RunningMeanStd) -> Policy:
+    """A run's `Policy` in the environment of `spec`, reading the policy's part of its observation."""
+    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation)
+    low, high = jnp.asarray(spec.action_low), jnp.asarray(spec.action_high)
+    return Policy(config, actor, params, obs_stats, low, high, spec.part(spec.policy_obs_key), spec.observation_size)
 
 
 def first_episode_returns(

@@ -116,7 +116,9 @@ class Config:
     drac_coef: float = 0.1
     """drac only: weight of DrAC's policy-KL and value regularisers"""
     hidden_sizes: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of both the actor and the critic"""
+    """hidden layer sizes of the actor, and of the critic unless critic_hidden_sizes"""
+    critic_hidden_sizes: tuple[int, ...] = ()
+    """hidden layer sizes of the critic; empty: hidden_sizes"""
     activation: ActivationName = "tanh"
     """hidden activation"""
     normalize_obs: bool = True
@@ -195,8 +197,9 @@ class Config:
         if unknown:
             raise UsageError(f"not an rpo_jax config: unknown field(s) {', '.join(unknown)}")
         try:
-            if "hidden_sizes" in values:
-                values["hidden_sizes"] = tuple(values["hidden_sizes"])
+            for name in ("hidden_sizes", "critic_hidden_sizes"):
+                if name in values:
+                    values[name] = tuple(values[name])
             return cls(**values).validate()
         except TypeError as error:  # a field of the wrong type, met by a comparison in validate
             raise UsageError(f"not an rpo_jax config: {error}") from None
@@ -238,6 +241,8 @@ def _check_ranges(config: Config) -> None:
         raise UsageError(f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {config.aug_low}, {config.aug_high}")
     if not config.hidden_sizes or min(config.hidden_sizes) <= 0:
         raise UsageError(f"hidden_sizes must be positive integers, got {config.hidden_sizes}")
+    if config.critic_hidden_sizes and min(config.critic_hidden_sizes) <= 0:
+        raise UsageError(f"critic_hidden_sizes must be positive integers, got {config.critic_hidden_sizes}")
 
 
 def _check_batch(config: Config) -> None:
@@ -297,3 +302,49 @@ PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
     PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
     hidden_sizes=(128, 64, 32), normalize_value=True,
 )  # fmt: skip
+
+
+def _playground(unroll_length: int, batch_size: int, **fields) -> Config:
+    """One of MuJoCo Playground's Brax PPO configs (`locomotion_params`, `manipulation_params`) in
+    rpo_jax's terms. Brax gathers batch_size x num_minibatches unrolls of `unroll_length` steps
+    an update, num_envs at a time: num_steps is that many steps per environment. Brax's choices
+    kept: constant learning rate, no reward normalisation, no value clipping, its value loss
+    (vf_coef 0.5 of a halved squared error), SiLU (its swish), Adam's epsilon 1e-8, clip 0.3.
+    Not reproduced: Brax's tanh-squashed policy with a state-dependent scale (rpo_jax's
+    Gaussian has a free log-scale), and observation normalisation without a clip (kept at 10)."""
+    base = dict(
+        lr=3e-4, lr_schedule="constant", gamma=0.97, ent_coef=1e-2, clip_coef=0.3, clip_value_loss=False,
+        max_grad_norm=1.0, adam_eps=1e-8, activation="silu", normalize_reward=False, num_minibatches=32,
+        update_epochs=4, num_envs=8192,
+    )  # fmt: skip
+    base.update(fields)
+    base["num_steps"] = unroll_length * batch_size * base["num_minibatches"] // base["num_envs"]
+    return Config(**base)
+
+
+# Locomotion (`robot/` and `mjx-robot/` tasks), by the tasks they were tuned for.
+LEGGED = dict(hidden_sizes=(512, 256, 128))
+PRESETS["go1-joystick"] = _playground(20, 256, total_timesteps=200_000_000, **LEGGED)
+PRESETS["go1-getup"] = _playground(20, 256, total_timesteps=50_000_000, **LEGGED)
+PRESETS["go1-handstand"] = _playground(20, 256, total_timesteps=100_000_000, **LEGGED)
+PRESETS["humanoid-joystick"] = _playground(20, 256, total_timesteps=200_000_000, clip_coef=0.2, ent_coef=5e-3, **LEGGED)
+PRESETS["locomotion"] = _playground(
+    20, 256, total_timesteps=100_000_000, hidden_sizes=(128,) * 4, critic_hidden_sizes=(256,) * 5
+)  # Playground's default, for its tasks without a tuned config (Spot)
+# Manipulation. Brax clips no gradient on these (max_grad_norm unset); rpo_jax clips at norm 1.
+MANIPULATION = dict(num_envs=2048, update_epochs=8, critic_hidden_sizes=(256,) * 5)
+PRESETS["panda-pick-cube"] = _playground(
+    10, 512, total_timesteps=20_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION
+)
+PRESETS["panda-open-cabinet"] = _playground(
+    10, 512, total_timesteps=40_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION
+)
+PRESETS["panda-pick-cube-cartesian"] = _playground(
+    10, 256, total_timesteps=5_000_000, lr=5e-4, ent_coef=7.5e-3, num_minibatches=8, reward_scale=0.1,
+    hidden_sizes=(256, 256), **{**MANIPULATION, "num_envs": 1024},
+)  # fmt: skip
+PRESETS["aloha-hand-over"] = _playground(
+    15, 512, total_timesteps=100_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(256,) * 3, **MANIPULATION
+)
+PRESETS["leap-cube-reorient"] = _playground(40, 256, total_timesteps=200_000_000, gamma=0.99, **LEGGED)
+PRESETS["leap-cube-rotate-z"] = _playground(40, 256, total_timesteps=100_000_000, **LEGGED)

@@ -28,7 +28,7 @@ import tyro
 
 from rpo_jax import envs
 from rpo_jax.config import PRESETS, SWEEPABLE, Config
-from rpo_jax.envs import dmc_tasks
+from rpo_jax.envs import dmc_tasks, robot_tasks
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.report import compose, results
 from rpo_jax.run.directory import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
@@ -62,6 +62,9 @@ SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") f
 # The IsaacGym tasks were trained with rl_games' settings for each task in the paper, everything
 # else with CleanRL's (the `paper` preset).
 TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
+# The robots train with Playground's config for each (its PPO results'); a legged robot and an arm.
+TASK_PRESETS.update({robot_tasks.PREFIX + task: facts.preset for task, facts in robot_tasks.TASKS.items()})
+SUITES["robots"] = ("robot/Go1JoystickFlatTerrain", "robot/PandaPickCube")
 
 # The paper's budget: 8M environment steps per run, 10 seeds per variant.
 PAPER_TIMESTEPS, PAPER_SEEDS = PRESETS["paper"].total_timesteps, 10
@@ -112,6 +115,7 @@ def per_algorithm(field: str, values: tuple[str, ...]) -> tuple[Job, ...]:
 
 
 PPO, RPO = Job("ppo", "ppo"), Job("rpo", "rpo")
+FIXED_ALPHAS = (PPO, Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)), Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)))
 EXPERIMENTS: dict[str, Experiment] = {
     "ppo-vs-rpo": Experiment((PPO, RPO), "all"),
     "entropy-reg": Experiment((Job("ppo", "ppo", sweep=("ent_coef", ENTROPY_COEFS)), RPO), "dmc"),
@@ -122,14 +126,10 @@ EXPERIMENTS: dict[str, Experiment] = {
     # RPO's alpha where a fixed 0.5 is reported to fall below PPO, against population-based
     # training over alpha and lr; every member of the population trains as many steps as a seed.
     "pbt-alpha": Experiment(
-        (
-            PPO,
-            Job("rpo-0.5", "rpo", (("rpo_alpha", 0.5),)),
-            Job("rpo-0.01", "rpo", (("rpo_alpha", 0.01),)),
-            Job("pbt", "rpo", population=Pbt.population, pbt_fields=Pbt.pbt_fields),
-        ),
-        "pbt-alpha",
+        (*FIXED_ALPHAS, Job("pbt", "rpo", population=Pbt.population, pbt_fields=Pbt.pbt_fields)), "pbt-alpha"
     ),
+    # The same on Playground's robots (populations of 4: a Go1 simulator takes 58 MB on the host).
+    "robots": Experiment((*FIXED_ALPHAS, Job("pbt", "rpo", population=4, pbt_fields=Pbt.pbt_fields)), "robots", 1_000_000),
     # Time limits bootstrapped from the final observation (rpo_jax's default) against treated as
     # terminal states (the paper's CleanRL code).
     "truncation": Experiment(per_algorithm("truncation", ("bootstrap", "terminate")), "gym"),

@@ -29,6 +29,8 @@ so `log_std` is a standard deviation's log for the Gaussian only. The determinis
 location for each: the Gaussian's and Laplace's mean, the Gumbel's mode.
 
 A run trained without observation normalisation has obs_mean 0, obs_std 1 and obs_clip inf.
+Where the observation has named parts (a robot's `state` for the policy, `privileged_state` for
+the critic), `obs` is the policy's part alone: the numbers the robot itself measures.
 `obs_std` is sqrt(var + 1e-8) of the run's running statistics, as training divides by it.
 
 The ONNX model (opset 17) computes the same with input `obs` [batch, obs_size] float32 and
@@ -73,9 +75,13 @@ OPSET = 17
 
 def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray]:
     """The arrays of the `.npz` for run `run` of `run_dir` (None: as `rpo_jax.load_policy`'s)."""
+    from rpo_jax.acting import part_statistics
+    from rpo_jax.envs.protocol import EnvSpec
     from rpo_jax.run.saved_policy import load_run
 
-    config, spec, actor_params, stats = load_run(run_dir, run)
+    config, record, actor_params, stats = load_run(run_dir, run)
+    spec = EnvSpec.from_record(record)
+    stats = part_statistics(stats, spec.part(spec.policy_obs_key))  # the policy's observation alone
     mlp = actor_params["params"]["MLP_0"]
     layers = [mlp[f"Dense_{i}"] for i in range(len(mlp))]
     arrays = {f"{kind}_{i}": np.asarray(layer[kind], np.float32) for i, layer in enumerate(layers) for kind in ("kernel", "bias")}
@@ -87,7 +93,7 @@ def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray
     return {
         "obs_mean": np.asarray(mean, np.float32), "obs_std": np.asarray(std, np.float32), "obs_clip": np.float32(clip),
         **arrays,
-        "action_low": np.asarray(spec["action_low"], np.float32), "action_high": np.asarray(spec["action_high"], np.float32),
+        "action_low": np.asarray(spec.action_low, np.float32), "action_high": np.asarray(spec.action_high, np.float32),
         "log_std": np.asarray(actor_params["params"]["log_std"], np.float32), "activation": np.str_(config.activation),
         "distribution": np.str_(config.dist),
     }  # fmt: skip

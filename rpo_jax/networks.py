@@ -51,18 +51,25 @@ class MLP(nn.Module):
         return nn.Dense(self.out_size, kernel_init=orthogonal(self.head_gain))(x)
 
 
+def read(obs: jax.Array, part: tuple[int, int] | None) -> jax.Array:
+    """The part [start, stop) of observations [..., obs_size] that a network reads (all: None)."""
+    return obs if part is None else obs[..., part[0] : part[1]]
+
+
 class Actor(nn.Module):
     """obs [..., obs_size] -> (location [..., action_size], log_scale [action_size]).
 
-    The log-scale is one state-independent parameter vector, initialised to 0."""
+    The log-scale is one state-independent parameter vector, initialised to 0. `reads`: the
+    part of the observation it reads (`EnvSpec.part`), so that it never sees the critic's."""
 
     action_size: int
     hidden_sizes: Sequence[int] = (64, 64)
     activation: str = "tanh"
+    reads: tuple[int, int] | None = None
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        loc = MLP(self.hidden_sizes, self.activation, self.action_size, 0.01)(obs)
+        loc = MLP(self.hidden_sizes, self.activation, self.action_size, 0.01)(read(obs, self.reads))
         log_scale = self.param("log_std", nn.initializers.zeros, (self.action_size,))
         return loc, log_scale
 
@@ -73,14 +80,15 @@ def actor_log_scale(actor_params: dict) -> jax.Array:
 
 
 class Critic(nn.Module):
-    """obs [..., obs_size] -> value [...]."""
+    """obs [..., obs_size] -> value [...], from the part `reads` (a privileged state)."""
 
     hidden_sizes: Sequence[int] = (64, 64)
     activation: str = "tanh"
+    reads: tuple[int, int] | None = None
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> jax.Array:
-        return MLP(self.hidden_sizes, self.activation, 1, 1.0)(obs)[..., 0]
+        return MLP(self.hidden_sizes, self.activation, 1, 1.0)(read(obs, self.reads))[..., 0]
 
 
 # Location-scale families the paper compares. distrax gives each an exact log-probability,

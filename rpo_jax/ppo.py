@@ -172,7 +172,7 @@ def make_trainer(config: Config, env: envs.Env, axis_name: str | None = None, en
     environments are split in `env_shards` equal shares over that device axis. A bad config is
     refused (UsageError)."""
     config = config.validate()
-    actor, critic = make_networks(config, env.spec.action_size)
+    actor, critic = make_networks(config, env.spec)
     wrapped = wrap_for_training(env, config, env_shards, axis_name)
     return Trainer(config, wrapped, actor, critic, make_optimizer(config), axis_name)
 
@@ -375,9 +375,11 @@ def gradient_step(
 # ---------------------------------------------------------------- the parts the trainer is built from
 
 
-def make_networks(config: Config, action_size: int) -> tuple[Actor, Critic]:
-    actor = Actor(action_size, tuple(config.hidden_sizes), config.activation)
-    return actor, Critic(tuple(config.hidden_sizes), config.activation)
+def make_networks(config: Config, spec: envs.EnvSpec) -> tuple[Actor, Critic]:
+    """The trainer's networks, each reading its part of the environment's observation."""
+    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation, spec.part(spec.policy_obs_key))
+    critic_sizes = tuple(config.critic_hidden_sizes or config.hidden_sizes)
+    return actor, Critic(critic_sizes, config.activation, spec.part(spec.critic_obs_key))
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:

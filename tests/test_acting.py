@@ -10,7 +10,7 @@ from rpo_jax.config import Config
 
 
 def make_policy(config: Config) -> Policy:
-    actor, _ = ppo.make_networks(config, 2)
+    actor, _ = ppo.make_networks(config, envs.EnvSpec("acting", 3, 2, (-0.3,) * 2, (0.3,) * 2, 100, "jax"))
     params = actor.init(jax.random.PRNGKey(0), jnp.zeros(3))
     stats = envs.RunningMeanStd(mean=jnp.asarray([1.0, -2.0, 0.5]), var=jnp.asarray([4.0, 0.25, 1.0]), count=jnp.asarray(10.0))
     return Policy(config, actor, params, stats, jnp.full(2, -0.3), jnp.full(2, 0.3))

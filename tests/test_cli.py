@@ -75,7 +75,7 @@ def test_load_policy_acts_like_the_trained_parameters(run_dir):
     stats = envs.RunningMeanStd(**{k: jnp.asarray(v[seed_index]) for k, v in saved["obs_stats"].items()})
     assert float(stats.count) > 1  # the normaliser's statistics were saved, not the initial ones
     config = Config(num_envs=8, num_steps=16, num_minibatches=2)
-    actor, _ = ppo.make_networks(config, 1)
+    actor, _ = ppo.make_networks(config, envs.env_spec("cartpole"))
 
     obs = jax.random.normal(jax.random.PRNGKey(0), (16, 4)) * 2
     key = jax.random.PRNGKey(1)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs
-from rpo_jax.envs import dmc, dmc_tasks
+from rpo_jax.envs import dmc, dmc_tasks, envpool_pools
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = json.loads((ROOT / "tests" / "data" / "dmc_reference.json").read_text())
@@ -40,17 +40,17 @@ def test_task_table_is_dm_controls():
 
 
 def fixed_action_returns(task: str, episodes: int = 8, seed: int = 12345, first_obs: list | None = None) -> np.ndarray:
-    from rpo_jax.envs.dmc import SPECS, DmcSimulators
+    from rpo_jax.envs.dmc import SPECS, simulators
 
     spec = SPECS[f"dmc/{task}"]
-    simulators = DmcSimulators(task, episodes, seed)
-    first = simulators.reset()
+    pool = simulators(task, episodes, seed)
+    first = pool.reset()
     assert first.shape == (episodes, spec.observation_size)
     if first_obs is not None:
         np.testing.assert_array_equal(first, first_obs)
     returns = np.zeros(episodes)
     for step, action in enumerate(fixed_actions(1000, np.array(spec.action_low), np.array(spec.action_high))):
-        _, reward, terminated, truncated, final_obs = simulators.step(np.broadcast_to(action, (episodes, len(action))))
+        _, reward, terminated, truncated, final_obs = pool.step(np.broadcast_to(action, (episodes, len(action))))
         assert np.isfinite(final_obs).all() and ((reward >= 0) & (reward <= 1)).all()
         assert not terminated.any() and truncated.all() == (step == 999)
         returns += reward
@@ -99,7 +99,7 @@ def test_returns_of_a_fixed_action_sequence_agree_with_dm_control_on_every_paper
 
 
 def public_steps(task: str, seed: int, actions: np.ndarray) -> list[tuple[np.ndarray, ...]]:
-    """The steps of `DmcSimulators` taken through envpool's public `send`, `recv` and `reset`:
+    """The steps of `dmc.simulators`' taken through envpool's public `send`, `recv` and `reset`:
     (obs, reward, terminated, truncated, final_obs) with auto-reset, in env order."""
     import envpool
 
@@ -128,11 +128,11 @@ def public_steps(task: str, seed: int, actions: np.ndarray) -> list[tuple[np.nda
 
 @pytest.mark.parametrize("task", ["pendulum-swingup", "hopper-stand"])
 def test_the_pools_own_send_and_recv_step_as_envpools_public_api(task):
-    """`DmcSimulators` steps through envpool's `_send` and `_recv`; across an episode's end
+    """`dmc.simulators`' steps through envpool's `_send` and `_recv`; across an episode's end
     every output, dtype included, equals what the public calls give."""
     pytest.importorskip("envpool")
     actions = np.random.default_rng(0).uniform(-1, 1, (1005, 3, dmc_tasks.TASKS[task][0])).astype(np.float32)
-    pools = dmc.DmcSimulators(task, 3, 11)
+    pools = dmc.simulators(task, 3, 11)
     pools.reset()
     ended = 0
     for t, (action, expected) in enumerate(zip(actions, public_steps(task, 11, actions))):
@@ -145,43 +145,43 @@ def test_the_pools_own_send_and_recv_step_as_envpools_public_api(task):
 
 def test_a_pool_has_no_more_threads_than_the_cores_the_process_may_use(monkeypatch):
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
-    monkeypatch.setattr(dmc.os, "cpu_count", lambda: 4)
-    monkeypatch.setattr(dmc.os, "sched_getaffinity", lambda pid: {2, 3}, raising=False)  # as under `taskset -c 2,3`
-    assert dmc.usable_cores() == 2 and dmc.pool_threads(8) == 2 and dmc.pool_threads(1) == 1
-    monkeypatch.delattr(dmc.os, "sched_getaffinity")  # a platform that cannot say (macOS): the machine's cores
-    assert dmc.usable_cores() == 4 and dmc.pool_threads(8) == 4
+    monkeypatch.setattr(envpool_pools.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(envpool_pools.os, "sched_getaffinity", lambda pid: {2, 3}, raising=False)  # as under `taskset -c 2,3`
+    assert envpool_pools.usable_cores() == 2 and envpool_pools.pool_threads(8) == 2 and envpool_pools.pool_threads(1) == 1
+    monkeypatch.delattr(envpool_pools.os, "sched_getaffinity")  # a platform that cannot say (macOS): the machine's cores
+    assert envpool_pools.usable_cores() == 4 and envpool_pools.pool_threads(8) == 4
 
 
 def test_a_pool_has_its_share_of_the_cores_where_the_cpu_is_split_into_devices(monkeypatch):
-    monkeypatch.setattr(dmc, "usable_cores", lambda: 4)
+    monkeypatch.setattr(envpool_pools, "usable_cores", lambda: 4)
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])  # --cpu-devices 2
-    assert dmc.pool_threads(8) == 2 and dmc.pool_threads(1) == 1
+    assert envpool_pools.pool_threads(8) == 2 and envpool_pools.pool_threads(1) == 1
     monkeypatch.setattr(jax, "devices", lambda backend=None: [f"cpu:{i}" for i in range(8)])  # more devices than cores
-    assert dmc.pool_threads(8) == 1
-    monkeypatch.setattr(dmc, "usable_cores", lambda: 2)
+    assert envpool_pools.pool_threads(8) == 1
+    monkeypatch.setattr(envpool_pools, "usable_cores", lambda: 2)
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])
-    assert dmc.pool_threads(8) == 1 and dmc.pool_affinity(1) == -1  # one thread, left to the OS
+    assert envpool_pools.pool_threads(8) == 1 and envpool_pools.pool_affinity(1) == -1  # one thread, left to the OS
 
 
 def test_a_pool_is_pinned_only_with_a_thread_on_every_core_and_the_cpu_one_device(monkeypatch):
-    monkeypatch.setattr(dmc.os, "cpu_count", lambda: 4)
-    monkeypatch.setattr(dmc, "usable_cores", lambda: 4)
+    monkeypatch.setattr(envpool_pools.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(envpool_pools, "usable_cores", lambda: 4)
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
-    assert dmc.pool_affinity(4) == 0
-    assert dmc.pool_affinity(2) == -1  # half the cores: the OS places the threads of this and other pools
+    assert envpool_pools.pool_affinity(4) == 0
+    assert envpool_pools.pool_affinity(2) == -1  # half the cores: the OS places the threads of this and other pools
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0", "cpu:1"])  # --cpu-devices 2
-    assert dmc.pool_affinity(4) == -1
+    assert envpool_pools.pool_affinity(4) == -1
     monkeypatch.setattr(jax, "devices", lambda backend=None: ["cpu:0"])
-    monkeypatch.setattr(dmc, "usable_cores", lambda: 2)  # a process kept to two of the four cores
-    assert dmc.pool_affinity(2) == -1
+    monkeypatch.setattr(envpool_pools, "usable_cores", lambda: 2)  # a process kept to two of the four cores
+    assert envpool_pools.pool_affinity(2) == -1
 
 
 def test_the_pool_is_built_with_the_threads_and_affinity_chosen():
     pytest.importorskip("envpool")
-    pool = dmc.DmcSimulators("pendulum-swingup", 8, 0)
-    threads = dmc.pool_threads(8)
+    pool = dmc.simulators("pendulum-swingup", 8, 0)
+    threads = envpool_pools.pool_threads(8)
     assert pool.pool.config["num_threads"] == threads
-    assert pool.pool.config["thread_affinity_offset"] == dmc.pool_affinity(threads)
+    assert pool.pool.config["thread_affinity_offset"] == envpool_pools.pool_affinity(threads)
     pool.close()
 
 

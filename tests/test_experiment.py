@@ -81,11 +81,12 @@ def test_kept_fraction_is_the_last_window_over_the_best():
 def test_every_experiment_builds_valid_training_plans(tmp_path):
     expected_variants = {
         "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
-        "truncation": 4, "pbt-alpha": 4,
+        "truncation": 4, "pbt-alpha": 4, "robots": 4,
     }  # fmt: skip
+    budgets = {"long-horizon": 100_000_000, "robots": 1_000_000}
     for name, spec in experiment.EXPERIMENTS.items():
         definition = experiment.resolve(experiment.parse_args([name, "--envs", "cartpole"]))
-        assert definition["total_timesteps"] == (100_000_000 if name == "long-horizon" else 8_000_000)
+        assert definition["total_timesteps"] == budgets.get(name, 8_000_000)
         variants = []
         for job in spec.jobs:
             plan = experiment.job_plan(definition, "cartpole", job, tmp_path / job.name)

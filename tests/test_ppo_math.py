@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from rpo_jax import cpu_workarounds
+from rpo_jax import cpu_workarounds, envs
 from rpo_jax import loss as loss_module
 from rpo_jax import ppo
 from rpo_jax.config import PRESETS, Config
@@ -292,7 +292,8 @@ LOSS_CONFIG = Config(algo="ppo", ent_coef=0.01)
 
 @pytest.fixture(scope="module")
 def loss_setup():
-    actor, critic = make_networks(LOSS_CONFIG, ACTION_SIZE)
+    spec = envs.EnvSpec("loss", OBS_SIZE, ACTION_SIZE, (-1.0,) * ACTION_SIZE, (1.0,) * ACTION_SIZE, 100, "jax")
+    actor, critic = make_networks(LOSS_CONFIG, spec)
     k_actor, k_critic, k_obs, k_act, k_lp, k_v, k_adv, k_ret = jax.random.split(jax.random.PRNGKey(4), 8)
     obs = jax.random.normal(k_obs, (BATCH, OBS_SIZE))
     # Scaled-up actor head so that the policy depends on the observation at more than 1e-2 level.

@@ -73,7 +73,7 @@ def test_listing_imports_no_simulator():
 def test_listing_names_a_missing_extra(monkeypatch):
     real_find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None if name == "envpool" else real_find_spec(name))
-    assert "extra dmc (dmc/*): not installed (no envpool): pip install '.[dmc]'" in extras_lines()
+    assert "extra dmc (dmc/*, robot/*): not installed (no envpool): pip install '.[dmc]'" in extras_lines()
 
 
 def test_listing_help_and_bad_arguments():

@@ -32,7 +32,8 @@ def extras_lines() -> list[str]:
     for extra, (prefixes, _) in EXTRAS.items():
         missing = missing_modules(extra)
         state = f"not installed (no {', '.join(missing)}): pip install '.[{extra}]'" if missing else "installed"
-        lines.append(f"extra {extra} ({', '.join(prefixes)}*): {state}")
+        names = ", ".join(prefix + "*" if prefix.endswith("/") else prefix for prefix in prefixes)
+        lines.append(f"extra {extra} ({names}): {state}")
     return lines
 
 

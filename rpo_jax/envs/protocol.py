@@ -34,7 +34,12 @@ if TYPE_CHECKING:
 
 @dataclasses.dataclass(frozen=True)
 class EnvSpec:
-    """Static facts of an environment."""
+    """Static facts of an environment.
+
+    An observation of named parts (a robot's `state` for the policy and `privileged_state` for
+    the critic) is their concatenation in `observation_keys`' order; `policy_obs_key` and
+    `critic_obs_key` name the part each network reads ("" for the whole observation). Being
+    elementwise, the observation normaliser normalises each part on its own."""
 
     name: str
     observation_size: int
@@ -43,6 +48,51 @@ class EnvSpec:
     action_high: tuple[float, ...]
     max_episode_steps: int
     backend: str
+    observation_keys: tuple[tuple[str, int], ...] = ()  # ((name, size), ...); () for one unnamed array
+    policy_obs_key: str = ""
+    critic_obs_key: str = ""
+
+    def __post_init__(self) -> None:
+        if self.observation_keys and sum(size for _, size in self.observation_keys) != self.observation_size:
+            raise ValueError(f"{self.name}: observation_keys' sizes must add up to observation_size")
+        for key in (self.policy_obs_key, self.critic_obs_key):
+            if key and key not in dict(self.observation_keys):
+                raise ValueError(f"{self.name}: {key!r} is not one of observation_keys {self.observation_keys}")
+
+    def part(self, key: str) -> tuple[int, int] | None:
+        """[start, stop) of the observation's part `key`; None for "" (the whole observation)."""
+        if not key:
+            return None
+        start = 0
+        for name, size in self.observation_keys:
+            if name == key:
+                return start, start + size
+            start += size
+        raise KeyError(key)
+
+    @property
+    def policy_observation_size(self) -> int:
+        """The numbers the policy reads: what an exported policy takes."""
+        part = self.part(self.policy_obs_key)
+        return self.observation_size if part is None else part[1] - part[0]
+
+    def record(self) -> dict[str, Any]:
+        """The spec as config.json records it: the named observations' fields only where it has
+        them, so that a flat task's record is what it was before they existed."""
+        record = dataclasses.asdict(self)
+        if not self.observation_keys:
+            for key in ("observation_keys", "policy_obs_key", "critic_obs_key"):
+                del record[key]
+        return record
+
+    @classmethod
+    def from_record(cls, record: dict[str, Any]) -> "EnvSpec":
+        """The spec that config.json records (`dataclasses.asdict`; runs written before named
+        observations lack their fields)."""
+        lists = ("action_low", "action_high")
+        fields = {key: tuple(value) if key in lists else value for key, value in record.items()}
+        fields["observation_keys"] = tuple((name, size) for name, size in record.get("observation_keys", ()))
+        return cls(**fields)
 
     @property
     def runs_on_host(self) -> bool:

@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, playground, pybullet
+from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, playground, pybullet, robots
 from rpo_jax.envs.check import missing_members
 from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec, MissingExtraError
 from rpo_jax.envs.wrappers import vectorize
@@ -61,6 +61,9 @@ def _entry(name: str) -> _Entry:
     if name.startswith(gymnasium.PREFIX):
         imported_module(name)  # Gymnasium imports the module of an id module:Env-v0
         return _Entry(lambda: gymnasium.make(name.removeprefix(gymnasium.PREFIX)), None)
+    if name.startswith(robots.PREFIX) and "?" in name:  # a robot with options of its own
+        task, _ = robots.parse_name(name)
+        return _Entry(lambda: robots.make(name), robots.spec(task, name))
     if ":" in name:
         return _Entry(lambda: import_factory(name)(), None)
     close = difflib.get_close_matches(name, _REGISTRY, n=5)
@@ -232,13 +235,15 @@ for _task in dmc_tasks.TASKS:
 for _task in dmc_tasks.PLAYGROUND_NAMES:
     register_env(f"mjx-dmc/{_task}", lambda task=_task: playground.PlaygroundEnv(task), playground.SPECS[f"mjx-dmc/{_task}"])
 register_env("ballbalance", ballbalance.BallBalance, ballbalance.SPEC)
+for _name in robots.SPECS:
+    register_env(_name, lambda name=_name: robots.make(name), robots.SPECS[_name])
 del _name, _task
 
 
 # The optional extras (pyproject.toml): the names they provide (by prefix) and the modules they install.
 EXTRAS = {
     "gym": (("gym/BipedalWalker-v3", "gymnasium/"), ("gymnasium", "Box2D")),
-    "dmc": (("dmc/",), ("envpool",)),
+    "dmc": (("dmc/", robots.PREFIX), ("envpool",)),
     "pybullet": (("pybullet/",), ("pybullet", "pybullet_envs")),
     "playground": (("mjx-dmc/",), ("mujoco_playground",)),
 }

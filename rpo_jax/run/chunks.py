@@ -272,13 +272,11 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
                 # The simulators died with the interrupted process and no checkpoint holds them.
                 state = placement.restart_program(trainer)(state)
         run_chunk = chunk_program.result()
-    run_eval = (
-        eval_program.compile_evaluation(trainer.config, trainer.actor, env, plan.eval_episodes) if plan.eval_every else None
-    )
+    run_eval = eval_program.compile_evaluation(trainer.config, env, plan.eval_episodes) if plan.eval_every else None
     labels = [run_label(run, list(plan.grid[0]), plan.members) for run in runs]
     capture = None
     if plan.capture_video:
-        policy = eval_program.run_policy(trainer.config, trainer.actor, env)
+        policy = eval_program.run_policy(trainer.config, env)
         capture = video.Capture(plan.out, env, policy, plan.capture_video_episodes, labels, is_primary())
     # Evaluation and video keys of their own, so that they leave training's random numbers alone.
     eval_keys, video_keys = (eval_program.stream_keys(keys, stream) for stream in eval_program.STREAMS)

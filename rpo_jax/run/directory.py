@@ -59,8 +59,9 @@ def config_checksums(record: dict[str, Any]) -> dict[str, str]:
 
 
 def env_directory(env: str) -> str:
-    """`env`'s name as a file or directory name: / and an import path's : as _."""
-    return env.replace("/", "_").replace(":", "_")
+    """`env`'s name as a file or directory name: / and an import path's : as _, a robot's options
+    ('?noise_level=0,push_enable=false') as -noise_level=0-push_enable=false."""
+    return env.replace("/", "_").replace(":", "_").replace("?", "-").replace(",", "-")
 
 
 @dataclasses.dataclass(frozen=True)

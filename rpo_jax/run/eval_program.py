@@ -10,13 +10,11 @@ from __future__ import annotations
 from typing import Any, Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from rpo_jax import envs, ppo
-from rpo_jax.acting import Policy, first_episode_returns
+from rpo_jax.acting import Policy, first_episode_returns, policy_of
 from rpo_jax.config import Config
-from rpo_jax.networks import Actor
 
 # The streams folded into each run's key for evaluation and for videos, so that neither touches
 # training's random numbers.
@@ -26,10 +24,9 @@ STREAMS = (0x5EED, 0x71DE0)
 EvaluationProgram = Callable[[dict[str, Any], jax.Array], tuple[jax.Array, jax.Array]]
 
 
-def run_policy(config: Config, actor: Actor, env: envs.Env) -> Callable[[dict[str, Any]], Policy]:
+def run_policy(config: Config, env: envs.Env) -> Callable[[dict[str, Any]], Policy]:
     """A run's deterministic-capable `Policy` from its `evaluation_inputs`."""
-    low, high = jnp.asarray(env.spec.action_low), jnp.asarray(env.spec.action_high)
-    return lambda inputs: Policy(config, actor, inputs["actor"], inputs["obs_stats"], low, high)
+    return lambda inputs: policy_of(config, env.spec, inputs["actor"], inputs["obs_stats"])
 
 
 def stream_keys(keys: jax.Array, stream: int) -> jax.Array:
@@ -37,16 +34,14 @@ def stream_keys(keys: jax.Array, stream: int) -> jax.Array:
     return jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, stream)
 
 
-def compile_evaluation(
-    config: Config, actor: Actor, env: envs.Env, episodes: int, deterministic: bool = True
-) -> EvaluationProgram:  # fmt: skip
+def compile_evaluation(config: Config, env: envs.Env, episodes: int, deterministic: bool = True) -> EvaluationProgram:
     """The evaluation of every run, jitted for one device: the policy (deterministic unless told;
     normalised as in training, with the statistics of the moment) on `episodes` fresh copies of
     the environment, scored by the environment's own rewards (no scaling or normalisation), each
     run's key folded with its update count. For a host-side environment the copies are a pool of
     their own simulators. It takes the real runs' `evaluation_inputs` on the host, wherever the
     runs train, and compiles at its first call."""
-    copies, make_policy = envs.vectorize(env, episodes), run_policy(config, actor, env)
+    copies, make_policy = envs.vectorize(env, episodes), run_policy(config, env)
 
     def evaluate(inputs: dict[str, Any], key: jax.Array) -> tuple[jax.Array, jax.Array]:
         policy = make_policy(inputs)
@@ -81,11 +76,10 @@ def saved_evaluation(
     `saved`) after its last update, each run's episodes chosen by its seed in `seeds` (its own
     seed gives the episodes of its final evaluation in training). Returns the returns [runs,
     episodes], their means [runs] (as training logs them) and each run's `Policy` by its index."""
-    config, spec, actor_params, stats = saved
-    actor, _ = ppo.make_networks(config, spec["action_size"])
+    config, _, actor_params, stats = saved
     # The update count as the training state holds it: int32, after the last update.
     inputs = {"actor": actor_params, "obs_stats": stats, "update": np.full(len(seeds), config.num_updates, np.int32)}
     keys = stream_keys(jax.vmap(jax.random.PRNGKey)(np.asarray(seeds)), STREAMS[0])
-    returns, means = compile_evaluation(config, actor, env, episodes, deterministic)(inputs, keys)
-    make_policy = run_policy(config, actor, env)
+    returns, means = compile_evaluation(config, env, episodes, deterministic)(inputs, keys)
+    make_policy = run_policy(config, env)
     return np.asarray(returns), np.asarray(means), lambda run: make_policy(jax.tree.map(lambda x: x[run], inputs))

@@ -442,7 +442,7 @@ def config_record(plan: RunPlan, runs: list[dict[str, Any]], swept: Sequence[str
         "sweep": {name: sorted({run["hparams"][name] for run in runs}) for name in swept},
         "runs": runs,
         "config": dataclasses.asdict(plan.config),
-        "env_spec": dataclasses.asdict(env_spec),
+        "env_spec": env_spec.record(),
         "plan": {"algo": plan.config.algo, **plan_record(plan)},
         # What the run starts with, against which a resume before its first checkpoint checks config.json.
         "trained_with": training_record(plan),

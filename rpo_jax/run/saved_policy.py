@@ -7,14 +7,14 @@ module's (`params_bytes` writes what `load_run` reads).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import serialization
 
 from rpo_jax import envs, ppo
-from rpo_jax.acting import ActFn, Policy
+from rpo_jax.acting import ActFn, Policy, policy_of
 from rpo_jax.config import ACTING_FIELDS, Config
 from rpo_jax.errors import UsageError
 from rpo_jax.run.directory import CONFIG_FILE, PARAMS_FILE, RunDir
@@ -26,7 +26,7 @@ def load_policy(run_dir: str | Path, run: int | None = None) -> ActFn:
     indexes the runs (seeds x sweep points) trained together, as listed in config.json; None: the
     first, or a population's best member (`RunDir.default_run`)."""
     config, spec, actor_params, stats = load_run(run_dir, run)
-    return jitted_policy(config, spec["action_size"], spec["action_low"], spec["action_high"], actor_params, stats)
+    return jitted_policy(policy_of(config, envs.EnvSpec.from_record(spec), actor_params, stats))
 
 
 def make_policy(trainer: ppo.Trainer, state: ppo.TrainState, run: int | None = None) -> ActFn:
@@ -45,17 +45,11 @@ def make_policy(trainer: ppo.Trainer, state: ppo.TrainState, run: int | None = N
         if not 0 <= run < state.update.shape[0]:  # numpy's indexing would wrap a negative one, JAX's clamp any
             raise UsageError(f"make_policy: run must be in [0, {state.update.shape[0]}), got {run}")
         actor_params, stats = jax.tree.map(lambda leaf: leaf[run], (actor_params, stats))
-    spec = trainer.env.spec
-    return jitted_policy(trainer.config, spec.action_size, spec.action_low, spec.action_high, actor_params, stats)
+    return jitted_policy(policy_of(trainer.config, trainer.env.spec, actor_params, stats))
 
 
-def jitted_policy(
-    config: Config, action_size: int, low: Sequence[float], high: Sequence[float], actor_params: Any,
-    stats: envs.RunningMeanStd,
-) -> ActFn:  # fmt: skip
+def jitted_policy(policy: Policy) -> ActFn:
     """One run's `acting.Policy`, jitted (`deterministic` static)."""
-    actor, _ = ppo.make_networks(config, action_size)
-    policy = Policy(config, actor, actor_params, stats, jnp.asarray(low), jnp.asarray(high))
     return jax.jit(policy.__call__, static_argnames="deterministic")
 
 

@@ -1,0 +1,110 @@
+"""MuJoCo Playground's robots on envpool's C++ ports (`robot/<Task>`), stepped on the host: the
+CPU path to the tasks that `rpo_jax.envs.mjx_robots` runs on MJX (`mjx-robot/<Task>`), the GPU
+path.
+
+envpool 1.2.5 (the `dmc` extra) ports Playground's locomotion and manipulation tasks with their
+rewards, observation noise and pushes, and bundles the MuJoCo Menagerie models they need. A
+locomotion task observes a dict: `state`, what the robot itself measures (joint angles and
+velocities, gyro, gravity, the command; noisy), read by the policy, and `privileged_state`,
+which adds what only a simulator knows (true velocities, contact forces, ...), read by the
+critic: an asymmetric actor-critic. Their concatenation is the observation (`EnvSpec`'s
+`observation_keys`), so an exported policy takes the `state` alone. Manipulation tasks with one
+observation are flat.
+
+A task's own settings (envpool's config fields: `noise_level`, `push_enable`, ...) are options
+of its name: `robot/BerkeleyHumanoidJoystickFlatTerrain?push_enable=false,noise_level=0`
+(`parse_name`). The name is what a run directory records, so evaluation and resumption build the
+same environment. Episodes end by termination (a fall) or, at the task's limit, truncation.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rpo_jax.envs.host import HostEnv
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
+from rpo_jax.envs.robot_tasks import PREFIX, TASKS
+from rpo_jax.errors import UsageError
+
+
+def spec(task: str, name: str | None = None) -> EnvSpec:
+    """The spec of `task` under `name` (its registered name `robot/<task>` by default)."""
+    facts = TASKS[task]
+    keys: tuple[tuple[str, int], ...] = ()
+    if facts.privileged_size:
+        keys = (("state", facts.state_size), ("privileged_state", facts.privileged_size))
+    size = facts.state_size + facts.privileged_size
+    low, high = (-1.0,) * facts.action_size, (1.0,) * facts.action_size  # every port's action space
+    policy_key, critic_key = ("state", "privileged_state") if keys else ("", "")
+    name = name or PREFIX + task
+    return EnvSpec(name, size, facts.action_size, low, high, facts.episode_steps, "host", keys, policy_key, critic_key)
+
+
+SPECS = {PREFIX + task: spec(task) for task in TASKS}
+
+
+def parse_name(name: str) -> tuple[str, dict[str, Any]]:
+    """'robot/Go1JoystickFlatTerrain?noise_level=0,push_enable=false' -> the task and its options
+    (numbers, true/false, or text), each checked against the task's settings; UsageError where a
+    task or setting is unknown."""
+    task, _, query = name.removeprefix(PREFIX).partition("?")
+    if task not in TASKS:
+        raise UsageError(f"env {name!r}: unknown robot task {task!r}; python -m rpo_jax.envs lists them")
+    options: dict[str, Any] = {}
+    for part in filter(None, query.split(",")):
+        key, equals, value = part.partition("=")
+        if not equals or not key:
+            raise UsageError(f"env {name!r}: an option is KEY=VALUE, got {part!r}")
+        options[key.strip()] = _value(value.strip())
+    if options:
+        settings = _settings(task)
+        unknown = sorted(set(options) - set(settings))
+        if unknown:
+            raise UsageError(f"env {name!r}: {task} has no setting {', '.join(unknown)}; its settings: {', '.join(settings)}")
+    return task, options
+
+
+def _value(text: str) -> Any:
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+# envpool's config fields that are not a task's own settings.
+POOL_FIELDS = {
+    "num_envs", "batch_size", "num_threads", "max_num_players", "thread_affinity_offset", "base_path", "seed",
+    "env_seed", "gym_reset_return_info", "max_episode_steps", "frame_stack", "task_name",
+}  # fmt: skip
+
+
+def _settings(task: str) -> list[str]:
+    """The task's own settings (envpool's config fields for it, less the pool's)."""
+    envpool = _import_envpool(PREFIX + task)
+    return [field for field in envpool.make_spec(f"{task}-v1").config._fields if field not in POOL_FIELDS]
+
+
+def _import_envpool(name: str) -> Any:
+    try:
+        import envpool
+    except ImportError:
+        raise MissingExtraError(name, "envpool", "dmc") from None
+    return envpool
+
+
+def make(name: str) -> HostEnv:
+    """The host-side environment `name` (`robot/<Task>`, with options or not)."""
+    from rpo_jax.envs.envpool_pools import EnvpoolSimulators
+
+    _import_envpool(name)
+    task, options = parse_name(name)
+    facts = TASKS[task]
+    keys = ["state", "privileged_state"] if facts.privileged_size else ["state"]
+    return HostEnv(
+        spec(task, name),
+        lambda num_envs, seed: EnvpoolSimulators(f"{task}-v1", facts.action_size, keys, num_envs, seed, options),
+    )

@@ -1,0 +1,158 @@
+"""Observations by name (an asymmetric actor-critic) and MuJoCo Playground's robots on envpool's
+ports (`robot/<Task>`): what the policy and the critic read, what an exported policy takes,
+the tasks' specs and options, and a tiny training run through the command line."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rpo_jax import envs, load_policy, ppo, train
+from rpo_jax.config import PRESETS, Config
+from rpo_jax.envs import robots
+from rpo_jax.envs.check import check_env
+from rpo_jax.errors import UsageError
+
+from point_mass import PointMass
+
+# The point mass observed as a robot is: `state` (its position alone, what it measures) for the
+# policy and `privileged_state` (position, velocity and a constant) for the critic.
+NAMED = envs.EnvSpec(
+    "named_point_mass", 1 + 3, 1, (-1.0,), (1.0,), 50, "jax",
+    (("state", 1), ("privileged_state", 3)), "state", "privileged_state",
+)  # fmt: skip
+
+
+class NamedPointMass(PointMass):
+    spec = NAMED
+
+    @staticmethod
+    def observed(ts):
+        def named(x):
+            return jnp.concatenate([x[..., :1], x, jnp.ones_like(x[..., :1])], axis=-1)
+
+        return ts.replace(obs=named(ts.obs), final_obs=named(ts.final_obs))
+
+    def reset(self, key):
+        state, ts = super().reset(key)
+        return state, self.observed(ts)
+
+    def step(self, state, action):
+        state, ts = super().step(state, action)
+        return state, self.observed(ts)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    config = Config(num_envs=8, num_steps=16, num_minibatches=2, update_epochs=1, total_timesteps=8 * 16 * 2)
+    trainer = ppo.make_trainer(config, NamedPointMass())
+    state = jax.jit(trainer.train)(jax.random.PRNGKey(0))[0]
+    return trainer, state
+
+
+def test_the_critic_reads_the_privileged_state_and_the_policy_never_does(trained):
+    trainer, state = trained
+    obs = jax.random.normal(jax.random.PRNGKey(1), (32, NAMED.observation_size))
+    moved = obs.at[:, 1:].add(jax.random.normal(jax.random.PRNGKey(2), (32, 3)) * 3)  # privileged_state only
+    actor, critic = state.params["actor"], state.params["critic"]
+    np.testing.assert_array_equal(trainer.actor.apply(actor, obs)[0], trainer.actor.apply(actor, moved)[0])
+    assert not np.allclose(trainer.critic.apply(state.params["critic"], obs), trainer.critic.apply(critic, moved))
+    # The networks' first layers are sized by what each reads.
+    assert actor["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == 1
+    assert critic["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == 3
+
+
+def test_a_policy_acts_on_the_state_alone_or_the_whole_observation(trained):
+    trainer, state = trained
+    policy = ppo_policy(trainer, state)
+    obs = jax.random.normal(jax.random.PRNGKey(3), (5, NAMED.observation_size))
+    np.testing.assert_allclose(policy(obs), policy(obs[:, :1]), rtol=1e-6)
+    with pytest.raises(ValueError, match="takes 1 or 4 observations, got 3"):
+        policy(obs[:, :3])
+
+
+def ppo_policy(trainer, state):
+    from rpo_jax import make_policy
+
+    return make_policy(trainer, state)
+
+
+def test_named_observations_must_add_up_and_name_their_parts():
+    with pytest.raises(ValueError, match="add up to observation_size"):
+        envs.EnvSpec("x", 5, 1, (-1.0,), (1.0,), 10, "jax", (("state", 1), ("privileged_state", 3)))
+    with pytest.raises(ValueError, match="'sensors' is not one of observation_keys"):
+        envs.EnvSpec("x", 4, 1, (-1.0,), (1.0,), 10, "jax", (("state", 1), ("privileged_state", 3)), "sensors")
+    assert NAMED.part("privileged_state") == (1, 4) and NAMED.policy_observation_size == 1
+    assert envs.EnvSpec.from_record(json.loads(json.dumps(NAMED.record()))) == NAMED
+    flat = PointMass.spec
+    assert "observation_keys" not in flat.record() and envs.EnvSpec.from_record(flat.record()) == flat
+
+
+def test_a_robot_name_without_a_known_task_or_with_a_malformed_option_is_refused():
+    with pytest.raises(UsageError, match="unknown robot task 'Go2'"):
+        robots.parse_name("robot/Go2")
+    with pytest.raises(UsageError, match="an option is KEY=VALUE, got 'noise'"):
+        robots.parse_name("robot/Go1Getup?noise")
+
+
+def test_the_presets_gather_as_many_steps_an_update_as_playgrounds_brax_configs():
+    # Brax: batch_size x num_minibatches unrolls of unroll_length steps an update.
+    for name, unroll, batch in (("go1-joystick", 20, 256), ("panda-pick-cube", 10, 512), ("leap-cube-reorient", 40, 256)):
+        config = PRESETS[name]
+        assert config.num_envs * config.num_steps == unroll * batch * config.num_minibatches, name
+    assert PRESETS["panda-pick-cube"].critic_hidden_sizes == (256,) * 5
+    assert PRESETS["panda-pick-cube"].hidden_sizes == (32,) * 4
+
+
+envpool = pytest.importorskip("envpool")
+
+
+def test_the_robots_specs_are_envpools():
+    for task, facts in robots.TASKS.items():
+        spec = envpool.make_spec(f"{task}-v1")
+        space = spec.observation_space
+        sizes = [space[key].shape[0] for key in ("state", "privileged_state")] if facts.privileged_size else [space.shape[0]]
+        assert sizes == [facts.state_size, facts.privileged_size][: len(sizes)], task
+        assert spec.action_space.shape == (facts.action_size,) and spec.config.max_episode_steps == facts.episode_steps
+        assert spec.config.ctrl_dt == pytest.approx(facts.control_dt), task
+
+
+def test_a_robots_settings_reach_its_simulators_and_unknown_ones_are_refused():
+    from rpo_jax.envs.envpool_pools import EnvpoolSimulators
+
+    task, options = robots.parse_name("robot/Go1JoystickFlatTerrain?noise_level=0,kp=30.5")
+    assert (task, options) == ("Go1JoystickFlatTerrain", {"noise_level": 0, "kp": 30.5})
+    pool = EnvpoolSimulators(f"{task}-v1", 12, ["state", "privileged_state"], 2, 0, options)
+    assert pool.pool.config["noise_level"] == 0
+    pool.close()
+    with pytest.raises(UsageError, match="Go1Getup has no setting push_enable; its settings: "):
+        robots.parse_name("robot/Go1Getup?push_enable=false")
+
+
+@pytest.mark.parametrize("name", ["robot/Go1JoystickFlatTerrain", "robot/PandaPickCube"])
+def test_the_experiments_robots_pass_the_check(name):
+    assert check_env(envs.make_env(name)) == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(robots.SPECS))
+def test_every_robot_passes_the_check(name):
+    assert check_env(envs.make_env(name)) == []
+
+
+def test_a_go1_trains_and_its_exported_policy_takes_the_48_numbers_of_its_state(tmp_path):
+    onnxruntime = pytest.importorskip("onnxruntime")
+    from rpo_jax import export
+
+    out = tmp_path / "go1"
+    flags = ["--env", "robot/Go1JoystickFlatTerrain?noise_level=0", "--num-envs", "4", "--num-steps", "8"]
+    assert train.main([*flags, "--num-minibatches", "2", "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
+    assert json.loads((out / "config.json").read_text())["env"] == "robot/Go1JoystickFlatTerrain?noise_level=0"
+    assert export.main([str(out), "--onnx", str(tmp_path / "go1.onnx")]) == 0
+    session = onnxruntime.InferenceSession(str(tmp_path / "go1.onnx"))
+    assert session.get_inputs()[0].shape == ["batch", 48]
+    state = np.random.default_rng(0).normal(size=(3, 48)).astype(np.float32)
+    (actions,) = session.run(None, {"obs": state})
+    np.testing.assert_allclose(actions, load_policy(out)(state), atol=1e-5)
