@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Every GPU figure the project claims or aims for, in one prepared run (under 10 minutes on one GPU).
 #
-#   benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]
+#   benchmarks/device_check.sh [--cpu-smoke | --robots] [OUTDIR]
 #
 #   --cpu-smoke  the same steps at tiny sizes, side by side on the CPU's cores; its figures mean nothing
+#   --robots     instead, the Go1 joystick on MJX at MuJoCo Playground's config (go1-joystick preset,
+#                8192 envs, 20M steps), timed to its return (a second command: its compile alone is minutes)
 #   OUTDIR       where the logs and results go (default: $OUT if set, else ./device-check)
 #   -h, --help   print this text
 #   PYTHON=...   (environment) the interpreter to run (default: .venv's, else python3 on the PATH)
@@ -16,6 +18,7 @@
 # | ballbalance, mjx-dmc/walker-walk training steps/s, 4096 envs | - | benchmarks/throughput.py (train_sps) |
 # | one update of host-side dmc/walker-walk, the GPU's callback path (without envpool: gymnasium/Pendulum-v1) | runs | python -m rpo_jax.train |
 # | training steps/s against devices, both placements (more than one device only) | - | benchmarks/scaling.py |
+# | --robots: mjx-robot/Go1JoystickFlatTerrain, 20M steps: wall, compile, steps/s, return | Playground: 200M in ~7 min (RTX 4090) | python -m rpo_jax.train |
 #
 # Each step has its own time limit; a failed or timed-out step is recorded and the others go on.
 # Writes OUTDIR/<step>.log, .status.json and the step's own .json, OUTDIR/status.txt, OUTDIR/results.json
@@ -34,10 +37,10 @@ case "${1:-}" in
         ;;
 esac
 cd "$(dirname "$0")/.."
-smoke=0
-if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; fi
+smoke=0 robots=0
+if [ "${1:-}" = "--cpu-smoke" ]; then smoke=1; shift; elif [ "${1:-}" = "--robots" ]; then robots=1; shift; fi
 if [ "${1:-}" != "${1#-}" ] || [ $# -gt 1 ]; then
-    echo "usage: benchmarks/device_check.sh [--cpu-smoke] [OUTDIR]   (--help says more)" >&2
+    echo "usage: benchmarks/device_check.sh [--cpu-smoke | --robots] [OUTDIR]   (--help says more)" >&2
     exit 2
 fi
 out_dir=${1:-${OUT:-./device-check}}
@@ -74,6 +77,24 @@ step() {
     run_step "$@" &
 }
 
+if [ "$robots" = 1 ]; then
+    rm -rf "$out_dir/go1"
+    run_step go1 540 "$python" -m rpo_jax.train --env mjx-robot/Go1JoystickFlatTerrain --preset go1-joystick --algo ppo \
+        --total-timesteps 20000000 --checkpoint-every 0 --eval-every 0 --quiet --out "$out_dir/go1"
+    "$python" - "$out_dir" <<'EOF'
+import json, sys
+from pathlib import Path
+
+out = Path(sys.argv[1])
+status = json.loads((out / "go1.status.json").read_text())
+summary = json.loads((out / "go1" / "summary.json").read_text()) if (out / "go1" / "summary.json").is_file() else {}
+keys = ("device", "total_timesteps", "compile_seconds", "train_seconds", "sps", "final_return_mean")
+result = {"exit_code": status["exit_code"], "wall_seconds": status["wall_seconds"], **{key: summary.get(key) for key in keys}}
+(out / "robots.json").write_text(json.dumps(result, indent=2))
+print(json.dumps(result, indent=2))
+EOF
+    exit 0
+fi
 step cartpole "${limits[0]}" "$python" benchmarks/throughput.py --env cartpole --num-envs "$envs" --env-steps "$env_steps" \
     --train-updates "$updates" --repeats 2 --json "$out_dir/cartpole.json"
 rm -rf "$out_dir/cartpole-long"

@@ -66,8 +66,8 @@ def undescribed(help_text: str) -> list[str]:
 def test_every_standing_script_answers_help_with_a_line_for_each_flag(script):
     printed = run(script, "--help", timeout=60).stdout
     if script.endswith(".sh"):
-        assert "device_check.sh [--cpu-smoke] [OUTDIR]" in printed
-        for flag in ("--cpu-smoke", "OUTDIR", "-h, --help", "PYTHON="):
+        assert "device_check.sh [--cpu-smoke | --robots] [OUTDIR]" in printed
+        for flag in ("--cpu-smoke", "--robots", "OUTDIR", "-h, --help", "PYTHON="):
             assert re.search(rf"^\s+{re.escape(flag)}\S*\s{{2,}}\S", printed, re.MULTILINE), flag
         return
     assert printed.startswith(f"usage: {script}")

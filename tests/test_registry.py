@@ -37,7 +37,9 @@ def test_static_spec_is_the_built_environments(name):
     assert envs.env_spec(name) == built_spec(name)
 
 
-BUILT_SLOWLY = [name for name in envs.env_names() if name.startswith(("brax/", "pybullet/", "dmc/", "mjx-dmc/"))]
+BUILT_SLOWLY = [
+    name for name in envs.env_names() if name.startswith(("brax/", "pybullet/", "dmc/", "mjx-dmc/", "robot/", "mjx-robot/"))
+]
 
 
 @pytest.mark.slow

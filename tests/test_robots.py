@@ -136,12 +136,6 @@ def test_the_experiments_robots_pass_the_check(name):
     assert check_env(envs.make_env(name)) == []
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(robots.SPECS))
-def test_every_robot_passes_the_check(name):
-    assert check_env(envs.make_env(name)) == []
-
-
 def test_a_go1_trains_and_its_exported_policy_takes_the_48_numbers_of_its_state(tmp_path):
     onnxruntime = pytest.importorskip("onnxruntime")
     from rpo_jax import export
@@ -156,3 +150,77 @@ def test_a_go1_trains_and_its_exported_policy_takes_the_48_numbers_of_its_state(
     state = np.random.default_rng(0).normal(size=(3, 48)).astype(np.float32)
     (actions,) = session.run(None, {"obs": state})
     np.testing.assert_allclose(actions, load_policy(out)(state), atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# The MJX path: loaded and traced, never compiled (a robot's step compiles for many minutes on a CPU)
+
+
+def heavier_floor(model, rng):
+    """A user's randomiser with Brax's signature: the floor's friction from U(1, 2) per environment."""
+    friction = jax.vmap(lambda key: model.geom_friction.at[0, 0].set(jax.random.uniform(key, minval=1.0, maxval=2.0)))(rng)
+    in_axes = jax.tree.map(lambda _: None, model).tree_replace({"geom_friction": 0})
+    return model.tree_replace({"geom_friction": friction}), in_axes
+
+
+@pytest.fixture(scope="module")
+def go1():
+    pytest.importorskip("mujoco_playground")
+    return envs.make_env("mjx-robot/Go1JoystickFlatTerrain")
+
+
+def test_an_mjx_robot_loads_from_the_installed_menagerie_and_traces_as_its_spec_says(go1):
+    from mujoco_playground._src import mjx_env
+
+    from rpo_jax.envs import mjx_robots
+    from rpo_jax.envs.check import first_step_problems
+
+    assert mjx_env.MENAGERIE_PATH == mjx_robots.menagerie_path() and mjx_env.MENAGERIE_PATH.is_dir()
+    assert go1.spec == dataclasses_replace(robots.SPECS["robot/Go1JoystickFlatTerrain"], "mjx-robot/", "mjx")
+    assert first_step_problems(go1) == []
+
+
+def dataclasses_replace(spec, prefix, backend):
+    import dataclasses
+
+    return dataclasses.replace(spec, name=prefix + spec.name.removeprefix("robot/"), backend=backend)
+
+
+def test_each_episode_draws_its_own_physics_the_same_for_the_same_key(go1):
+    from rpo_jax.envs import mjx_robots
+
+    draw = jax.jit(lambda key: mjx_robots.randomized_leaves(go1.nominal, go1.randomize, key))
+    first, second, again = draw(jax.random.PRNGKey(0)), draw(jax.random.PRNGKey(1)), draw(jax.random.PRNGKey(0))
+    assert first.geom_friction[0, 0] != second.geom_friction[0, 0]  # the floor's friction, U(0.4, 1.0)
+    assert not np.allclose(first.body_mass, second.body_mass)  # every link's mass, x U(0.9, 1.1)
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(a, b)
+    model = mjx_robots.with_leaves(go1.nominal, first)  # what the episode steps
+    np.testing.assert_array_equal(model.body_mass, first.body_mass)
+    np.testing.assert_array_equal(model.geom_size, go1.nominal.geom_size)  # not randomised: the nominal's
+
+
+def test_off_the_nominal_model_and_a_users_randomiser_by_its_import_path():
+    pytest.importorskip("mujoco_playground")
+    from rpo_jax.envs import mjx_robots
+
+    nominal = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=false")
+    assert nominal.randomize is None
+    state, _ = jax.eval_shape(nominal.reset, jax.random.PRNGKey(0))
+    assert state[1] is None  # no drawn leaves: every episode steps the nominal model
+    own = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=test_robots:heavier_floor")
+    leaves = jax.jit(lambda key: mjx_robots.randomized_leaves(own.nominal, own.randomize, key))(jax.random.PRNGKey(3))
+    assert 1.0 <= float(leaves.geom_friction[0, 0]) <= 2.0 and leaves.body_mass is None
+    with pytest.raises(UsageError, match="an MJX robot's only option is randomize"):
+        envs.make_env("mjx-robot/Go1JoystickFlatTerrain?noise_level=0")
+
+
+@pytest.mark.slow
+def test_an_mjx_robot_trains(tmp_path):
+    """Minutes of compiling on a CPU: the MJX path is the GPU's (benchmarks/device_check.sh)."""
+    pytest.importorskip("mujoco_playground")
+    out = tmp_path / "panda"
+    flags = ["--env", "mjx-robot/PandaPickCube", "--num-envs", "4", "--num-steps", "8", "--num-minibatches", "2"]
+    assert train.main([*flags, "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["total_timesteps"] == 64 and summary["final_return_n"] >= 0

@@ -23,7 +23,9 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from rpo_jax.envs import ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, playground, pybullet, robots
+from rpo_jax.envs import (
+    ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, mjx_robots, playground, pybullet, robots,
+)  # fmt: skip
 from rpo_jax.envs.check import missing_members
 from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec, MissingExtraError
 from rpo_jax.envs.wrappers import vectorize
@@ -64,6 +66,10 @@ def _entry(name: str) -> _Entry:
     if name.startswith(robots.PREFIX) and "?" in name:  # a robot with options of its own
         task, _ = robots.parse_name(name)
         return _Entry(lambda: robots.make(name), robots.spec(task, name))
+    if name.startswith(mjx_robots.PREFIX) and "?" in name:
+        task = name.removeprefix(mjx_robots.PREFIX).partition("?")[0]
+        spec = mjx_robots.spec(task, name) if task in mjx_robots.MJX_TASKS else None
+        return _Entry(lambda: mjx_robots.make(name, import_factory), spec)
     if ":" in name:
         return _Entry(lambda: import_factory(name)(), None)
     close = difflib.get_close_matches(name, _REGISTRY, n=5)
@@ -147,9 +153,10 @@ def module_locations(module_name: str) -> list[Path]:
     return locations
 
 
-def import_factory(path: str) -> Callable[[], Env]:
+def import_factory(path: str, arguments: int = 0) -> Callable[..., Env]:
     """The callable named by the import path `package.module:factory` (a dotted attribute after
-    the colon is followed), checked to be callable without arguments."""
+    the colon is followed), checked to be callable with `arguments` positional arguments (an
+    environment's factory takes none; a robot's randomiser, model and key)."""
     module_name, _, attribute = path.partition(":")
     if not module_name or not attribute:
         raise UsageError(f"env {path!r}: an import path is package.module:factory, e.g. my_package.envs:make_env")
@@ -168,9 +175,10 @@ def import_factory(path: str) -> Callable[[], Env]:
     except AttributeError:
         raise UsageError(f"env {path!r}: module {module_name} has no attribute {attribute}") from None
     try:
-        inspect.signature(factory).bind()
+        inspect.signature(factory).bind(*[None] * arguments)
     except TypeError:
-        raise UsageError(f"env {path!r}: {attribute} is not a callable that takes no arguments") from None
+        takes = f"{arguments} positional arguments" if arguments else "no arguments"
+        raise UsageError(f"env {path!r}: {attribute} is not a callable that takes {takes}") from None
     except ValueError:  # a builtin without a signature: it is called as it is
         pass
     return factory
@@ -237,6 +245,8 @@ for _task in dmc_tasks.PLAYGROUND_NAMES:
 register_env("ballbalance", ballbalance.BallBalance, ballbalance.SPEC)
 for _name in robots.SPECS:
     register_env(_name, lambda name=_name: robots.make(name), robots.SPECS[_name])
+for _name in mjx_robots.SPECS:
+    register_env(_name, lambda name=_name: mjx_robots.make(name, import_factory), mjx_robots.SPECS[_name])
 del _name, _task
 
 
@@ -245,7 +255,7 @@ EXTRAS = {
     "gym": (("gym/BipedalWalker-v3", "gymnasium/"), ("gymnasium", "Box2D")),
     "dmc": (("dmc/", robots.PREFIX), ("envpool",)),
     "pybullet": (("pybullet/",), ("pybullet", "pybullet_envs")),
-    "playground": (("mjx-dmc/",), ("mujoco_playground",)),
+    "playground": (("mjx-dmc/", mjx_robots.PREFIX), ("mujoco_playground",)),
 }
 
 

