@@ -5,10 +5,12 @@ programs (`rpo_jax.parallel.devices`' epochs placement), each counting its own h
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from rpo_jax import envs
@@ -42,7 +44,7 @@ class Diagnostics:
 # The magnitude past which an observation's square overflows float32, as the observation
 # normaliser's variance does. Observations read raw (--no-normalize-obs) are counted past it, so
 # that such a run stops as a normalised one does rather than train on them.
-OVERFLOWING_OBSERVATION = float(jnp.sqrt(jnp.finfo(jnp.float32).max))
+OVERFLOWING_OBSERVATION = math.sqrt(float(np.finfo(np.float32).max))  # numpy: no JAX computation at import
 
 
 def count_nonfinite(*arrays: jax.Array) -> jax.Array:
