@@ -127,14 +127,12 @@ class CompileLog(logging.Handler):
         return {"compile_seconds": step, "all_compile_seconds": step + others}
 
 
-def measure_brax(num_envs: int, timesteps: int) -> dict[str, float]:
-    import functools
-
+def brax_compile_log() -> CompileLog:
+    """JAX's compile log, installed for Brax's trainer in this process: its training epoch's
+    compiles logged under PROGRAMS["brax"], and the one jax function its trainer needs restored."""
     import jax
     import numpy as np
-    from brax.training.agents.ppo import networks, train
-    from flax import linen
-    from mujoco_playground import wrapper
+    from brax.training.agents.ppo import train
 
     if not hasattr(jax, "device_put_replicated"):
         # Removed from jax; Brax's trainer calls it once, to place its state on the local devices.
@@ -156,6 +154,17 @@ def measure_brax(num_envs: int, timesteps: int) -> dict[str, float]:
         return log.named_call(PROGRAMS["brax"], mapped) if is_step else mapped
 
     jax.pmap = named_pmap  # this process measures Brax alone
+    return log
+
+
+def measure_brax(num_envs: int, timesteps: int) -> dict[str, float]:
+    import functools
+
+    from brax.training.agents.ppo import networks, train
+    from flax import linen
+    from mujoco_playground import wrapper
+
+    log = brax_compile_log()
     epochs: list[float] = []  # training/sps of each training epoch
 
     network = functools.partial(

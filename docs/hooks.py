@@ -48,7 +48,7 @@ DEFAULT = re.compile(r"(.*?)(?:\s*\((?:default: (.*)|required)\))?\s*$", re.DOTA
 TOPICS = {
     "speed": ("Speed", ("Throughput", "Seeds in one program", "Against Brax", "Start-up", "Costs")),
     "devices": ("Devices and GPUs", ("Several devices", "GPU")),
-    "learning": ("Learning", ("Learning", "published reference", "Intervals")),
+    "learning": ("Learning", ("Learning", "published reference", "Intervals", "Robots")),
     "installing": ("Installing and testing", ("Test-suite",)),
     "other": ("Other measurements", ()),
 }
@@ -222,6 +222,7 @@ REPORT_NAMES = {
     "pendulum-1env-8m-terminate": "Pendulum PPO, one environment",
     "pendulum-1env-rpo-8m-terminate": "Pendulum RPO, one environment",
     "pbt-alpha": "Population-based training of alpha",
+    "robots-200k": "Robots: PPO against RPO, 200k steps",
 }
 
 

@@ -25,7 +25,7 @@ HOST_TASK = "gymnasium/Pendulum-v1"
 # The scripts a user runs, and the tools the committed reports need: each has an entry in
 # benchmarks/README.md, whose `<!-- help: NAME -->` the docs replace by its --help.
 STANDING = (
-    "throughput.py", "scaling.py", "seeds.py", "compare.py", "purejaxrl_loop.py", "device_check.sh",
+    "throughput.py", "scaling.py", "seeds.py", "compare.py", "compare_robot.py", "purejaxrl_loop.py", "device_check.sh",
     "final_return_window.py", "random_returns.py", "metrics_from_tensorboard.py", "dmc_reference.py",
 )  # fmt: skip
 
@@ -130,6 +130,61 @@ def test_the_purejaxrl_style_loop_trains_alone_on_the_compared_work():
 def test_random_returns_of_a_task():
     result = last_json(run("random_returns.py", "gym/Pendulum-v1", "--episodes", "2").stdout)
     assert result["env"] == "gym/Pendulum-v1" and result["episodes"] == 2 and result["mean"] < 0
+
+
+def test_zero_actions_are_the_middle_of_the_bounds_and_uniform_ones_spread(monkeypatch):
+    import numpy as np
+
+    from rpo_jax import envs, evaluate
+
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import random_returns
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    actions = {}
+
+    def act_once(env, act, episodes, key, deterministic):  # the policy random_returns hands on, called once
+        actions[kind] = np.asarray(act(np.zeros((episodes, env.spec.observation_size)), key, deterministic))
+        return np.zeros(episodes)
+
+    monkeypatch.setattr(evaluate, "episode_returns", act_once)
+    for kind in ("zero", "uniform"):
+        random_returns.random_returns(POINT_MASS, 64, 0, kind)
+    spec = envs.env_spec(POINT_MASS)
+    low, high = np.asarray(spec.action_low), np.asarray(spec.action_high)
+    assert np.array_equal(actions["zero"], np.broadcast_to((low + high) / 2, actions["zero"].shape))
+    assert (actions["uniform"] >= low).all() and (actions["uniform"] <= high).all() and actions["uniform"].std() > 0.1
+
+
+def test_compare_robot_tables_and_draws_the_runs_it_has(tmp_path):
+    # The table and the figure from a results.json of one run per trainer (the training itself
+    # compiles a robot for minutes: the slow test below runs it).
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import compare_robot
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    results = {"num_envs": 8, "runs": {
+        "brax-seed1": {"trainer": "brax", "seed": 1, "sps": 1000.0, "compile_seconds": 20.0, "curve": [[0, 0.0], [800, 1.5]]},
+        "rpo_jax-seed1": {"trainer": "rpo_jax", "seed": 1, "sps": 1500.0, "compile_seconds": 30.0, "curve": [[800, 2.5]]},
+    }}  # fmt: skip
+    table = compare_robot.markdown(results)
+    assert "| brax | 1 | 1,000 | 1.00x | 20.0 | 0: 0.00, 800: 1.50 |" in table
+    assert "| rpo_jax | 1 | 1,500 | 1.50x | 30.0 | 800: 2.50 |" in table
+    compare_robot.plot(results, tmp_path / "curves.png")
+    assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_compare_robot_trains_both_trainers_and_resumes(tmp_path):
+    out = tmp_path / "go1"
+    flags = ("--num-envs", "8", "--timesteps", "8000", "--seeds", "1", "--out", out)
+    printed = run("compare_robot.py", *flags, timeout=1200).stdout
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert sorted(runs) == ["brax-seed1", "rpo_jax-seed1"] and "| rpo_jax | 1 |" in printed
+    assert [len(runs[name]["curve"]) for name in sorted(runs)] == [6, 5] and all(r["sps"] > 0 for r in runs.values())
+    assert run("compare_robot.py", *flags, timeout=60).stdout == printed  # nothing trains again
 
 
 def test_final_return_window_gives_the_committed_figures_again():
