@@ -118,9 +118,19 @@ def stop_then_end_the_wait(reader: int, signum: int, noticed: threading.Event) -
             pass
 
 
+@pytest.fixture
+def ctrl_c_raises():
+    """Ctrl-C meets Python's own handler, as in a terminal. A suite started as a background job of
+    a script inherits SIGINT ignored (POSIX), and Python keeps it ignored: no Ctrl-C would arrive."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize(
     "signum, name, ends", [(signal.SIGTERM, "SIGTERM", "terminated"), (signal.SIGINT, "Ctrl-C", "interrupted")]
 )
+@pytest.mark.usefixtures("ctrl_c_raises")
 def test_a_stop_during_a_compiled_chunk_is_announced_while_it_waits_and_taken_at_its_end(capsys, monkeypatch, signum, name, ends):
     """Python runs no handler while the main thread waits in C, as on a compiled chunk of updates:
     the stop comes when the wait returns, and a line says so meanwhile (after 0.2 s here). The wait
