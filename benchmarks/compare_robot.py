@@ -20,7 +20,9 @@ Each (trainer, seed) trains in a fresh process, trainers alternating; a finished
 OUT/results.json and skipped when the command runs again. Training steps/s leave evaluation out
 on both sides (Brax: the steps of the evaluation intervals after the first over their
 `training/walltime`; rpo_jax: summary.json's). Brax's own `training/sps` is recorded beside it:
-with num_resets_per_eval > 1 it counts that many epochs' steps over one epoch's time. OUT/curves.png draws the evaluation returns.
+with num_resets_per_eval > 1 it counts that many epochs' steps over one epoch's time.
+OUT/curves.png draws the evaluation returns. `--ablations brax-gaussian` trains Brax with rpo_jax's
+policy as well (a Gaussian with a free log-scale starting at 1, not squashed).
 """
 
 from __future__ import annotations
@@ -40,10 +42,13 @@ from typing import Any
 TASK = "Go1JoystickFlatTerrain"
 ENV = "mjx-robot/" + TASK
 TRAINERS = ("brax", "rpo_jax")
+# Brax with rpo_jax's policy (a Gaussian with a free log-scale starting at 1, no squashing): the
+# ablation that tells the policies' part in a difference of the curves from the trainers'.
+ABLATIONS = ("brax-gaussian",)
 NUM_STEPS, MINIBATCHES, EVALS, EVAL_EPISODES = 20, 4, 5, 16
 
 
-def measure_brax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
+def measure_brax(num_envs: int, timesteps: int, seed: int, gaussian: bool = False) -> dict[str, Any]:
     from brax.training.agents.ppo import networks, train
     from compare import PROGRAMS, brax_compile_log  # this folder's, on the path when run as a script
     from mujoco_playground import wrapper
@@ -53,6 +58,7 @@ def measure_brax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
 
     log = brax_compile_log()
     params = locomotion_params.brax_ppo_config(TASK)
+    policy = dict(distribution_type="normal", noise_std_type="log", init_noise_std=1.0) if gaussian else {}
     curve: list[list[float]] = []
     walltimes: list[tuple[int, float]] = []  # (steps, training seconds so far) after each interval
     reported: list[float] = []  # Brax's own training/sps
@@ -66,7 +72,7 @@ def measure_brax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
     train.train(
         environment=mjx_robots.load_offline(TASK), eval_env=mjx_robots.load_offline(TASK),
         randomization_fn=mjx_robots.playground_randomizer(TASK), wrap_env_fn=wrapper.wrap_for_brax_training,
-        network_factory=functools.partial(networks.make_ppo_networks, **params.network_factory),
+        network_factory=functools.partial(networks.make_ppo_networks, **params.network_factory, **policy),
         num_timesteps=timesteps, num_envs=num_envs, batch_size=num_envs // MINIBATCHES, num_minibatches=MINIBATCHES,
         unroll_length=NUM_STEPS, num_updates_per_batch=params.num_updates_per_batch, num_evals=EVALS + 1,
         num_eval_envs=EVAL_EPISODES, num_resets_per_eval=params.num_resets_per_eval,
@@ -100,7 +106,7 @@ def measure_rpo_jax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
     return {"curve": curve, "sps": summary["sps"], "compile_seconds": summary["compile_seconds"]}
 
 
-MEASURES = {"brax": measure_brax, "rpo_jax": measure_rpo_jax}
+MEASURES = {"brax": measure_brax, "rpo_jax": measure_rpo_jax, "brax-gaussian": functools.partial(measure_brax, gaussian=True)}
 
 
 def measure_in_subprocess(trainer: str, num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
@@ -126,7 +132,7 @@ def markdown(results: dict[str, Any]) -> str:
         "| trainer | seeds | training steps/s (mean) | vs Brax | compile s | evaluation return at steps |",
         "|---|---|---|---|---|---|",
     ]
-    for trainer in TRAINERS:
+    for trainer in dict.fromkeys(run["trainer"] for run in runs.values()):
         mine = [run for run in runs.values() if run["trainer"] == trainer]
         sps = statistics.mean(run["sps"] for run in mine)
         compile_seconds = statistics.mean(run["compile_seconds"] for run in mine)
@@ -146,7 +152,8 @@ def plot(results: dict[str, Any], path: Path) -> None:
     from matplotlib import pyplot
 
     figure, axes = pyplot.subplots(figsize=(6, 4))
-    for color, trainer in zip(("tab:blue", "tab:orange"), TRAINERS):
+    trainers = dict.fromkeys(run["trainer"] for run in results["runs"].values())
+    for color, trainer in zip(("tab:blue", "tab:orange", "tab:green"), trainers):
         mine = [run for run in results["runs"].values() if run["trainer"] == trainer]
         for index, run in enumerate(mine):
             steps, values = zip(*run["curve"])
@@ -165,7 +172,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--timesteps", type=int, default=1_024_000, help="environment steps per training run")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2], help="the seeds each trainer trains with")
     parser.add_argument("--out", type=Path, help="results.json and curves.png go here; finished runs are kept")
-    parser.add_argument("--measure", choices=TRAINERS, help="train this one trainer in this process and print a JSON line")
+    parser.add_argument("--ablations", nargs="*", choices=ABLATIONS, default=[], help="train these beside the two trainers")
+    parser.add_argument(
+        "--measure", choices=TRAINERS + ABLATIONS, help="train this one trainer in this process and print a JSON line"
+    )
     return parser.parse_args(argv)
 
 
@@ -183,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     if {key: results[key] for key in settings} != settings:
         raise SystemExit(f"error: {saved} holds runs of {[results[key] for key in settings]}; choose another --out")
     for seed in args.seeds:
-        for trainer in TRAINERS if seed % 2 else TRAINERS[::-1]:
+        for trainer in (TRAINERS if seed % 2 else TRAINERS[::-1]) + tuple(args.ablations):
             name = f"{trainer}-seed{seed}"
             if name not in results["runs"]:
                 measured = measure_in_subprocess(trainer, args.num_envs, args.timesteps, seed)
