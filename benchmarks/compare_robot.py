@@ -37,6 +37,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from compare import versions  # this folder's, on the path when run as a script
+
 # JAX, Brax and Playground are imported where they are used, so that --help answers at once.
 
 TASK = "Go1JoystickFlatTerrain"
@@ -50,7 +52,7 @@ NUM_STEPS, MINIBATCHES, EVALS, EVAL_EPISODES = 20, 4, 5, 16
 
 def measure_brax(num_envs: int, timesteps: int, seed: int, gaussian: bool = False) -> dict[str, Any]:
     from brax.training.agents.ppo import networks, train
-    from compare import PROGRAMS, brax_compile_log  # this folder's, on the path when run as a script
+    from compare import PROGRAMS, brax_compile_log
     from mujoco_playground import wrapper
     from mujoco_playground.config import locomotion_params
 
@@ -118,12 +120,6 @@ def measure_in_subprocess(trainer: str, num_envs: int, timesteps: int, seed: int
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def versions() -> dict[str, str]:
-    from importlib import metadata
-
-    return {name: metadata.version(name) for name in ("jax", "brax", "playground", "mujoco-mjx")}
-
-
 def markdown(results: dict[str, Any]) -> str:
     """A row per trainer: steps/s and the evaluation return at each point, mean and seeds."""
     runs = results["runs"]
@@ -185,13 +181,15 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(MEASURES[args.measure](args.num_envs, args.timesteps, args.seeds[0])))
         return 0
     if args.out is None:
-        raise SystemExit("error: --out is required (results.json and curves.png go there)")
+        print("error: --out is required (results.json and curves.png go there)", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     saved = args.out / "results.json"
     settings = {"task": ENV, "num_envs": args.num_envs, "timesteps": args.timesteps}
     results = json.loads(saved.read_text()) if saved.exists() else {**settings, "versions": versions(), "runs": {}}
     if {key: results[key] for key in settings} != settings:
-        raise SystemExit(f"error: {saved} holds runs of {[results[key] for key in settings]}; choose another --out")
+        print(f"error: {saved} holds runs of {[results[key] for key in settings]}; choose another --out", file=sys.stderr)
+        return 2
     for seed in args.seeds:
         for trainer in (TRAINERS if seed % 2 else TRAINERS[::-1]) + tuple(args.ablations):
             name = f"{trainer}-seed{seed}"

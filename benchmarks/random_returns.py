@@ -27,12 +27,12 @@ def random_returns(name: str, episodes: int, seed: int, action: str = "uniform")
     env = envs.make_env(name)
     low, high = np.asarray(env.spec.action_low), np.asarray(env.spec.action_high)
 
-    def uniform(obs: Any, key: Any, deterministic: bool) -> Any:
+    def act(obs: Any, key: Any, deterministic: bool) -> Any:
         if action == "zero":
             return jax.numpy.broadcast_to((low + high) / 2, obs.shape[:-1] + low.shape)
         return jax.random.uniform(key, obs.shape[:-1] + low.shape, minval=low, maxval=high)
 
-    return episode_returns(env, uniform, episodes, jax.random.PRNGKey(seed), deterministic=False)
+    return episode_returns(env, act, episodes, jax.random.PRNGKey(seed), deterministic=False)
 
 
 def main(argv: list[str] | None = None) -> None:

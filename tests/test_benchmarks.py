@@ -9,6 +9,7 @@ The processes share the suite's compile cache and XLA flags (tests/conftest.py, 
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import re
@@ -60,6 +61,15 @@ def undescribed(help_text: str) -> list[str]:
         if not (has_text or continued):
             missing.append(lines[i].strip())
     return missing
+
+
+def script_module(name: str):
+    """The benchmark script `name` imported as a module, as Python does when it runs from benchmarks/."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.remove(str(BENCHMARKS))
 
 
 @pytest.mark.parametrize("script", STANDING)
@@ -137,11 +147,7 @@ def test_zero_actions_are_the_middle_of_the_bounds_and_uniform_ones_spread(monke
 
     from rpo_jax import envs, evaluate
 
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import random_returns
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    random_returns = script_module("random_returns")
     actions = {}
 
     def act_once(env, act, episodes, key, deterministic):  # the policy random_returns hands on, called once
@@ -160,11 +166,7 @@ def test_zero_actions_are_the_middle_of_the_bounds_and_uniform_ones_spread(monke
 def test_compare_robot_tables_and_draws_the_runs_it_has(tmp_path):
     # The table and the figure from a results.json of one run per trainer (the training itself
     # compiles a robot for minutes: the slow test below runs it).
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import compare_robot
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    compare_robot = script_module("compare_robot")
     results = {"num_envs": 8, "runs": {
         "brax-seed1": {"trainer": "brax", "seed": 1, "sps": 1000.0, "compile_seconds": 20.0, "curve": [[0, 0.0], [800, 1.5]]},
         "rpo_jax-seed1": {"trainer": "rpo_jax", "seed": 1, "sps": 1500.0, "compile_seconds": 30.0, "curve": [[800, 2.5]]},
@@ -220,14 +222,10 @@ def test_metrics_from_tensorboard_rebuilds_the_rows_a_run_lost(tmp_path):
 
 def test_dmc_reference_prints_envpools_first_observations_of_the_same_start_tasks():
     pytest.importorskip("envpool")
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        from dmc_reference import SAME_START_EPISODES, SAME_START_TASKS
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    dmc_reference = script_module("dmc_reference")
     starts = json.loads(run("dmc_reference.py", "starts").stdout)
-    assert sorted(starts) == sorted(SAME_START_TASKS)
-    assert all(len(observations) == SAME_START_EPISODES for observations in starts.values())
+    assert sorted(starts) == sorted(dmc_reference.SAME_START_TASKS)
+    assert all(len(observations) == dmc_reference.SAME_START_EPISODES for observations in starts.values())
 
 
 @pytest.mark.slow
