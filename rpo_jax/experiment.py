@@ -34,8 +34,8 @@ from rpo_jax.report import compose, results
 from rpo_jax.run.directory import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
 from rpo_jax.run.files import write_json
 from rpo_jax.run.options import (
-    PLACEMENT_FIELDS, JobConfig, JobProcesses, JobRunSpec, Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields,
-    parse, refuse_old_flags, refuse_train_flags,
+    PLACEMENT_FIELDS, JobConfig, JobProcesses, JobRunSpec, Pbt, PresetName, Processes, RobotSettings, RunSpec, Tracking,
+    flag, given_fields, parse, refuse_old_flags, refuse_train_flags,
 )  # fmt: skip
 
 PROG = "python -m rpo_jax.experiment"
@@ -158,6 +158,7 @@ class ExperimentArgs:
     config: tyro.conf.OmitArgPrefixes[JobConfig] = JobConfig(**{**vars(PRESETS["paper"]), "total_timesteps": PAPER_TIMESTEPS})
     preset: PresetName | None = None
     """config for every environment; None: rl_games' for the IsaacGym tasks, paper for the rest"""
+    robot: tyro.conf.OmitArgPrefixes[RobotSettings] = RobotSettings()
     run: tyro.conf.OmitArgPrefixes[JobRunSpec] = JobRunSpec(num_seeds=PAPER_SEEDS)
     processes: tyro.conf.OmitArgPrefixes[JobProcesses] = JobProcesses()
     tracking: tyro.conf.OmitArgPrefixes[Tracking] = Tracking()
@@ -198,7 +199,7 @@ def env_names(args: ExperimentArgs) -> list[str]:
         raise UsageError("--envs and --suite name the environments both; give one")
     if args.envs == ():  # `--envs` followed by no name: not the default suite's many tasks
         raise UsageError("--envs needs one or more environment names (python -m rpo_jax.envs lists them)")
-    names = list(args.envs or SUITES[args.suite or EXPERIMENTS[args.name].default_suite])
+    names = [args.robot.env_name(name) for name in args.envs or SUITES[args.suite or EXPERIMENTS[args.name].default_suite]]
     for name in names:
         envs.env_spec(name)  # registered names, gymnasium/<id> and import paths; else a one-line error
     repeated = sorted({name for name in names if names.count(name) > 1})

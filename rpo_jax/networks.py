@@ -59,18 +59,20 @@ def read(obs: jax.Array, part: tuple[int, int] | None) -> jax.Array:
 class Actor(nn.Module):
     """obs [..., obs_size] -> (location [..., action_size], log_scale [action_size]).
 
-    The log-scale is one state-independent parameter vector, initialised to 0. `reads`: the
-    part of the observation it reads (`EnvSpec.part`), so that it never sees the critic's."""
+    The log-scale is one state-independent parameter vector, initialised to `init_log_scale`.
+    `reads`: the part of the observation it reads (`EnvSpec.part`), so that it never sees the
+    critic's."""
 
     action_size: int
     hidden_sizes: Sequence[int] = (64, 64)
     activation: str = "tanh"
     reads: tuple[int, int] | None = None
+    init_log_scale: float = 0.0
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         loc = MLP(self.hidden_sizes, self.activation, self.action_size, 0.01)(read(obs, self.reads))
-        log_scale = self.param("log_std", nn.initializers.zeros, (self.action_size,))
+        log_scale = self.param("log_std", nn.initializers.constant(self.init_log_scale), (self.action_size,))
         return loc, log_scale
 
 

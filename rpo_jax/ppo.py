@@ -377,7 +377,8 @@ def gradient_step(
 
 def make_networks(config: Config, spec: envs.EnvSpec) -> tuple[Actor, Critic]:
     """The trainer's networks, each reading its part of the environment's observation."""
-    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation, spec.part(spec.policy_obs_key))
+    reads = spec.part(spec.policy_obs_key)
+    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation, reads, config.init_log_scale)
     critic_sizes = tuple(config.critic_hidden_sizes or config.hidden_sizes)
     return actor, Critic(critic_sizes, config.activation, spec.part(spec.critic_obs_key))
 

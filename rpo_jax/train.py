@@ -30,7 +30,9 @@ import tyro
 from rpo_jax.config import PRESETS, Config, check_applies
 from rpo_jax.errors import DIVERGED_EXIT, UsageError, command_failures
 from rpo_jax.run.directory import env_directory
-from rpo_jax.run.options import Pbt, PresetName, Processes, RunSpec, Tracking, flag, given_fields, given_value, parse
+from rpo_jax.run.options import (
+    Pbt, PresetName, Processes, RobotSettings, RunSpec, Tracking, flag, given_fields, given_value, parse,
+)  # fmt: skip
 from rpo_jax.scores import with_spread
 
 PROG = "python -m rpo_jax.train"
@@ -48,6 +50,7 @@ class TrainArgs:
     package.module:factory"""
     preset: PresetName | None = None
     """start from a named config instead of the CPU defaults"""
+    robot: tyro.conf.OmitArgPrefixes[RobotSettings] = RobotSettings()
     run: tyro.conf.OmitArgPrefixes[RunSpec] = RunSpec()
     pbt: tyro.conf.OmitArgPrefixes[Pbt] = Pbt()
     processes: tyro.conf.OmitArgPrefixes[Processes] = Processes()
@@ -77,6 +80,11 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
         raise UsageError(
             f"--out {args.run.out} differs from --resume {args.resume}; a resumed run continues in its own directory"
         )
+    robot_flags = sorted(given & {field.name for field in dataclasses.fields(RobotSettings)})
+    if robot_flags and args.robot.env_name(saved["env"]) != saved["env"]:
+        raise UsageError(
+            f"--resume {args.resume}: the run was made with --env {saved['env']}, which {flag(robot_flags[0])} would change"
+        )
     groups = (args.config, args.run, args.pbt, args.processes)
     values = {"env": args.env, "preset": args.preset, **{k: v for group in groups for k, v in vars(group).items()}}
     for name in sorted(given & saved.keys()):
@@ -101,10 +109,11 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
     if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
-    name = f"{env_directory(args.env)}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    env = args.robot.env_name(args.env)
+    name = f"{env_directory(env)}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     out = args.run.out or Path("runs") / name
     run = dataclasses.replace(args.run, out=out)
-    return plans.new_plan(args.env, args.config, run, args.processes, args.preset, population=args.pbt)
+    return plans.new_plan(env, args.config, run, args.processes, args.preset, population=args.pbt)
 
 
 def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> dict[str, Any]:

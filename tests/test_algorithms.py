@@ -247,6 +247,10 @@ def test_a_sweep_writes_every_run_with_its_values(tmp_path):
         (["--sweep", "rpo_alpha=a,b"], "values must be numbers"),
         (["--algo", "ppo", "--sweep", "rpo_alpha=0.1,0.5"], "applies to --algo rpo only"),
         (["--algo", "rpo", "--drac-coef", "0.5"], "applies to --algo drac only"),
+        (["--init-log-scale", "-11"], "init_log_scale must be in [-10, 10], got -11.0"),
+        (["--obs-noise", "0"], "--obs-noise and --push apply to robot/ and mjx-robot/ tasks, not 'cartpole'"),
+        (["--push", "off"], "--obs-noise and --push apply to robot/ and mjx-robot/ tasks, not 'cartpole'"),
+        (["--env", "robot/Go1JoystickFlatTerrain", "--obs-noise", "-1"], "--obs-noise must be >= 0"),
     ],
 )
 def test_invalid_method_options_exit_2_with_one_line(tmp_path, capsys, args, message):

@@ -4,13 +4,15 @@ import dataclasses
 import typing
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
-from rpo_jax import ppo
+from rpo_jax import envs, ppo
 from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Config, choices
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import Hyperparams, read_by
-from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS
+from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, actor_log_scale
 from rpo_jax.report import results
 
 
@@ -67,6 +69,14 @@ def test_results_columns_are_the_trainers_metrics():
 def test_unknown_choices_are_refused(field, value, message):
     with pytest.raises(UsageError, match=message):
         Config(**{field: value}).validate()
+
+
+def test_the_policy_starts_at_the_configured_log_scale():
+    actor, _ = ppo.make_networks(Config(init_log_scale=-1.5), envs.env_spec("cartpole"))
+    params = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 4)))
+    np.testing.assert_array_equal(actor_log_scale(params), np.full(1, -1.5, np.float32))
+    default, _ = ppo.make_networks(Config(), envs.env_spec("cartpole"))
+    assert not actor_log_scale(default.init(jax.random.PRNGKey(0), jnp.zeros((1, 4)))).any()
 
 
 def test_records_written_before_the_algorithm_table_still_load():

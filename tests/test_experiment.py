@@ -103,6 +103,14 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
     assert plan.config.minibatch_size == 8192 and plan.config.total_timesteps == 100_000_000
 
 
+def test_robot_settings_become_options_of_the_experiments_robots():
+    pytest.importorskip("envpool")
+    args = experiment.parse_args(["robots", "--envs", "robot/Go1JoystickFlatTerrain", "--obs-noise", "0"])
+    assert experiment.resolve(args)["envs"] == ["robot/Go1JoystickFlatTerrain?noise_level=0.0"]
+    with pytest.raises(UsageError, match="PandaPickCube has no setting noise_level"):
+        experiment.resolve(experiment.parse_args(["robots", "--obs-noise", "0"]))
+
+
 @pytest.mark.slow  # 50 s; a run resuming exactly stays in test_resume and test_user_envs
 def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path):
     out = tmp_path / "ppo-vs-rpo"

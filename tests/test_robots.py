@@ -14,6 +14,7 @@ from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import robots
 from rpo_jax.envs.check import check_env
 from rpo_jax.errors import UsageError
+from rpo_jax.run.options import RobotSettings
 
 from point_mass import PointMass
 
@@ -119,6 +120,17 @@ def test_the_robots_specs_are_envpools():
         assert spec.config.ctrl_dt == pytest.approx(facts.control_dt), task
 
 
+def test_the_command_lines_robot_settings_become_options_of_the_name():
+    go1 = "robot/Go1JoystickFlatTerrain?kp=30"
+    assert RobotSettings().env_name(go1) == go1
+    assert RobotSettings(obs_noise=0.5, push="off").env_name(go1) == go1 + ",noise_level=0.5,push_enable=false"
+    assert RobotSettings(push="on").env_name("mjx-robot/G1JoystickFlatTerrain?push_enable=false") == (
+        "mjx-robot/G1JoystickFlatTerrain?push_enable=true"
+    )
+    with pytest.raises(UsageError, match="--obs-noise and --push apply to robot/ and mjx-robot/ tasks, not 'cartpole'"):
+        RobotSettings(obs_noise=0.0).env_name("cartpole")
+
+
 def test_a_robots_settings_reach_its_simulators_and_unknown_ones_are_refused():
     from rpo_jax.envs.envpool_pools import EnvpoolSimulators
 
@@ -141,9 +153,9 @@ def test_a_go1_trains_and_its_exported_policy_takes_the_48_numbers_of_its_state(
     from rpo_jax import export
 
     out = tmp_path / "go1"
-    flags = ["--env", "robot/Go1JoystickFlatTerrain?noise_level=0", "--num-envs", "4", "--num-steps", "8"]
+    flags = ["--env", "robot/Go1JoystickFlatTerrain", "--obs-noise", "0", "--num-envs", "4", "--num-steps", "8"]
     assert train.main([*flags, "--num-minibatches", "2", "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
-    assert json.loads((out / "config.json").read_text())["env"] == "robot/Go1JoystickFlatTerrain?noise_level=0"
+    assert json.loads((out / "config.json").read_text())["env"] == "robot/Go1JoystickFlatTerrain?noise_level=0.0"
     assert export.main([str(out), "--onnx", str(tmp_path / "go1.onnx")]) == 0
     session = onnxruntime.InferenceSession(str(tmp_path / "go1.onnx"))
     assert session.get_inputs()[0].shape == ["batch", 48]
@@ -204,15 +216,18 @@ def test_off_the_nominal_model_and_a_users_randomiser_by_its_import_path():
     pytest.importorskip("mujoco_playground")
     from rpo_jax.envs import mjx_robots
 
-    nominal = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=false")
+    nominal = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=false,noise_level=0,push_enable=true")
     assert nominal.randomize is None
+    assert nominal.env._config.noise_config.level == 0 and nominal.env._config.pert_config.enable  # Playground's config
     state, _ = jax.eval_shape(nominal.reset, jax.random.PRNGKey(0))
     assert state[1] is None  # no drawn leaves: every episode steps the nominal model
     own = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=test_robots:heavier_floor")
     leaves = jax.jit(lambda key: mjx_robots.randomized_leaves(own.nominal, own.randomize, key))(jax.random.PRNGKey(3))
     assert 1.0 <= float(leaves.geom_friction[0, 0]) <= 2.0 and leaves.body_mass is None
-    with pytest.raises(UsageError, match="an MJX robot's only option is randomize"):
-        envs.make_env("mjx-robot/Go1JoystickFlatTerrain?noise_level=0")
+    with pytest.raises(UsageError, match="an MJX robot's options are randomize .*, noise_level, push_enable; not kp"):
+        envs.make_env("mjx-robot/Go1JoystickFlatTerrain?kp=30")
+    with pytest.raises(UsageError, match="PandaPickCube on MJX has no noise setting"):
+        envs.make_env("mjx-robot/PandaPickCube?noise_level=0")
 
 
 @pytest.mark.slow

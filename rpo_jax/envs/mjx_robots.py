@@ -14,7 +14,9 @@ randomiser, so two environments of a batch differ and the same key gives the sam
 Brax's trainer draws one model per environment slot for the whole run; here a slot's model
 changes with each episode. `?randomize=false` trains on the nominal model; `?randomize=
 package.module:function` takes a user's function with Brax's signature `randomize(model, rng
-[N, 2]) -> (batched model, in_axes)`.
+[N, 2]) -> (batched model, in_axes)`. `noise_level` and `push_enable`, the names envpool's ports
+give them, set the observation noise's scale and the pushes in Playground's config (`--obs-noise`,
+`--push`), where the task has them.
 
 MJX runs through its JAX implementation (`impl='jax'`); on a CPU a robot's step compiles for
 many minutes (the Go1's did not finish in 10), so the CPU trains the `robot/` ports instead.
@@ -34,7 +36,7 @@ from rpo_jax.envs import robot_tasks
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError, TimeStep, first_step
 from rpo_jax.errors import UsageError
 
-PREFIX = "mjx-robot/"
+PREFIX = robot_tasks.MJX_PREFIX
 # Playground's robots on MJX whose models this installation holds (Playground's own XMLs and
 # the Menagerie models of envpool's assets).
 MJX_TASKS = (
@@ -64,20 +66,59 @@ def menagerie_path() -> Path:
     return models
 
 
-def load_offline(task: str) -> Any:
-    """Playground's environment `task` (impl='jax'), its Menagerie models read from the installed
-    assets: Playground's path to them is set before it could look for (and clone) its own."""
+def _playground(task: str) -> tuple[Any, Any]:
+    """Playground's registry and its `mjx_env` module; MissingExtraError naming `task` without
+    the extra."""
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # mjx prints a line where Warp is missing
             from mujoco_playground import registry
             from mujoco_playground._src import mjx_env
     except ImportError:
         raise MissingExtraError(PREFIX + task, "mujoco_playground", "playground") from None
+    return registry, mjx_env
+
+
+def load_offline(task: str, overrides: dict[str, Any] | None = None) -> Any:
+    """Playground's environment `task` (impl='jax', and its config's `overrides`: dotted paths),
+    its Menagerie models read from the installed assets: Playground's path to them is set before
+    it could look for (and clone) its own."""
     from rpo_jax.envs.mjx_support import models_on_this_process
 
+    registry, mjx_env = _playground(task)
     mjx_env.MENAGERIE_PATH = menagerie_path()
     with models_on_this_process():
-        return registry.load(task, config_overrides={"impl": "jax"})
+        return registry.load(task, config_overrides={"impl": "jax", **(overrides or {})})
+
+
+# Where Playground's configs keep the settings that envpool's ports call `noise_level` and
+# `push_enable`, the first path a task's config has (the Go1's pushes are velocity kicks).
+CONFIG_PATHS = {
+    robot_tasks.NOISE_LEVEL: ("noise_config.level", "obs_noise.level"),
+    robot_tasks.PUSH_ENABLE: ("push_config.enable", "pert_config.enable"),
+}
+
+
+def config_overrides(task: str, name: str, options: dict[str, Any]) -> dict[str, Any]:
+    """The options `noise_level` and `push_enable` of `name` as paths of `task`'s Playground
+    config; UsageError where the task has no such setting."""
+    registry, _ = _playground(task)
+    config = registry.get_default_config(task)
+
+    def has(path: str) -> bool:
+        node = config
+        for part in path.split("."):
+            if part not in node:
+                return False
+            node = node[part]
+        return True
+
+    overrides = {}
+    for option in sorted(options.keys() & CONFIG_PATHS.keys()):
+        path = next((path for path in CONFIG_PATHS[option] if has(path)), None)
+        if path is None:
+            raise UsageError(f"env {name!r}: {task} on MJX has no {option.split('_')[0]} setting in Playground's config")
+        overrides[path] = options[option]
+    return overrides
 
 
 def playground_randomizer(task: str) -> Randomizer | None:
@@ -107,8 +148,10 @@ class MjxRobot:
     spec's key order; `done` is a termination, the time limit `wrappers.TimeLimit`'s. The state
     is (Playground's state, the episode's randomised model leaves or None)."""
 
-    def __init__(self, task: str, randomize: Randomizer | None, name: str | None = None) -> None:
-        self.spec, self.env, self.randomize = spec(task, name), load_offline(task), randomize
+    def __init__(
+        self, task: str, randomize: Randomizer | None, name: str | None = None, overrides: dict[str, Any] | None = None
+    ) -> None:
+        self.spec, self.env, self.randomize = spec(task, name), load_offline(task, overrides), randomize
         self.mj_model, self.control_dt = self.env.mj_model, float(self.env.dt)
         self.nominal = self.env.mjx_model
 
@@ -154,11 +197,13 @@ def make(name: str, import_function: Callable[[str, int], Callable[..., Any]]) -
     if task not in MJX_TASKS:
         raise UsageError(f"env {name!r}: unknown MJX robot {task!r}; python -m rpo_jax.envs lists them")
     options = robot_tasks.parse_options(name, query)
-    unknown = sorted(set(options) - {"randomize"})
+    unknown = sorted(set(options) - {"randomize", *CONFIG_PATHS})
     if unknown:
         raise UsageError(
-            f"env {name!r}: an MJX robot's only option is randomize (true, false or an import path), not {unknown[0]}"
+            f"env {name!r}: an MJX robot's options are randomize (true, false or an import path), "
+            f"{', '.join(CONFIG_PATHS)}; not {unknown[0]}"
         )
+    overrides = config_overrides(task, name, options)
     choice = options.get("randomize", True)
     if choice is True:
         randomize = playground_randomizer(task)
@@ -166,4 +211,4 @@ def make(name: str, import_function: Callable[[str, int], Callable[..., Any]]) -
         randomize = None
     else:
         randomize = import_function(str(choice), 2)
-    return MjxRobot(task, randomize, name)
+    return MjxRobot(task, randomize, name, overrides)

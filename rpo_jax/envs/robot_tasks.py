@@ -14,6 +14,10 @@ if TYPE_CHECKING:
     from rpo_jax.envs.protocol import EnvSpec
 
 PREFIX = "robot/"
+MJX_PREFIX = "mjx-robot/"  # the same tasks on MJX (`mjx_robots`)
+# The settings the command line gives any robot (`--obs-noise`, `--push`), by envpool's names; the
+# MJX path reads them into Playground's config (`mjx_robots.CONFIG_PATHS`).
+NOISE_LEVEL, PUSH_ENABLE = "noise_level", "push_enable"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,6 +83,15 @@ def parse_options(name: str, query: str) -> dict[str, Any]:
             raise UsageError(f"env {name!r}: an option is KEY=VALUE, got {part!r}")
         options[key.strip()] = _value(value.strip())
     return options
+
+
+def with_options(name: str, options: dict[str, Any]) -> str:
+    """`name` with `options` among those after its '?', replacing any it gives under the same key:
+    ('robot/Go1JoystickFlatTerrain', {'noise_level': 0}) -> 'robot/Go1JoystickFlatTerrain?noise_level=0'."""
+    base, _, query = name.partition("?")
+    merged = parse_options(name, query) | options
+    text = ",".join(f"{key}={str(value).lower() if isinstance(value, bool) else value}" for key, value in merged.items())
+    return base + ("?" + text if text else "")
 
 
 def _value(text: str) -> Any:

@@ -19,6 +19,7 @@ from typing import Annotated, Literal, Sequence, TypeVar
 import tyro
 
 from rpo_jax.config import PRESETS, Config
+from rpo_jax.envs import robot_tasks
 from rpo_jax.errors import UsageError, check_no_shadowing
 from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, SWEEPABLE
 
@@ -183,6 +184,30 @@ def refuse_train_flags(argv: Sequence[str]) -> None:
     for name in NOT_FOR_EXPERIMENTS:
         if any(arg == flag(name) or arg.startswith(f"{flag(name)}=") for arg in argv):
             raise UsageError(f"{flag(name)} is rpo_jax.train's: an experiment's jobs choose algorithm and sweeps, in one process")
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotSettings:
+    """Settings of Playground's robots (robot/ and mjx-robot/ tasks), which become options of the
+    environment's name (`robot/Go1JoystickFlatTerrain?noise_level=0`), so that the run records them."""
+
+    obs_noise: float | None = None
+    """robots: the scale of the observation noise, 0 for none (envpool's noise_level); None: the task's own"""
+    push: Literal["task", "on", "off"] = "task"
+    """robots: random pushes on or off, where the task has them; task: the task's own"""
+
+    def env_name(self, env: str) -> str:
+        """`env` with these settings among its options; UsageError where they cannot apply."""
+        push = {"on": True, "off": False}.get(self.push)
+        given = {robot_tasks.NOISE_LEVEL: self.obs_noise, robot_tasks.PUSH_ENABLE: push}
+        options = {name: value for name, value in given.items() if value is not None}
+        if not options:
+            return env
+        if not env.startswith((robot_tasks.PREFIX, robot_tasks.MJX_PREFIX)):
+            raise UsageError(f"--obs-noise and --push apply to robot/ and mjx-robot/ tasks, not {env!r}")
+        if self.obs_noise is not None and not self.obs_noise >= 0:
+            raise UsageError(f"--obs-noise must be >= 0 (0: no noise, 1: the task's own scale), got {self.obs_noise}")
+        return robot_tasks.with_options(env, options)
 
 
 @dataclasses.dataclass(frozen=True)
