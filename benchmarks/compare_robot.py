@@ -12,8 +12,8 @@ the actor reading `state` and the critic `privileged_state`, observation normali
 the deterministic policy on 16 fresh episodes 5 times during training (Brax also before it).
 
 What stays different, each a trainer's design: Brax's policy is Playground's tanh-squashed Gaussian
-with a softplus scale, rpo_jax's a Gaussian with a free log-scale whose actions are clipped to
-[-1, 1]; Brax draws each environment's physics once a run, rpo_jax once an episode; rpo_jax clips
+with a softplus scale, rpo_jax's a Gaussian with a free log-scale, starting at e^-2 in the preset,
+whose actions are clipped to [-1, 1]; Brax draws each environment's physics once a run, rpo_jax once an episode; rpo_jax clips
 normalised observations at 10 and bootstraps truncated episodes from their last state's value.
 
 Each (trainer, seed) trains in a fresh process, trainers alternating; a finished pair is kept in
@@ -21,8 +21,10 @@ OUT/results.json and skipped when the command runs again. Training steps/s leave
 on both sides (Brax: the steps of the evaluation intervals after the first over their
 `training/walltime`; rpo_jax: summary.json's). Brax's own `training/sps` is recorded beside it:
 with num_resets_per_eval > 1 it counts that many epochs' steps over one epoch's time.
-OUT/curves.png draws the evaluation returns. `--ablations brax-gaussian` trains Brax with rpo_jax's
-policy as well (a Gaussian with a free log-scale starting at 1, not squashed).
+OUT/curves.png draws the evaluation returns. `--ablations brax-gaussian` trains Brax with a Gaussian
+policy with a free log-scale starting at 0 (scale 1, not squashed) as well; `rpo_jax-scale-1`
+trains rpo_jax with its policy starting at scale 1 (`--init-log-scale 0`, as the preset trained
+before it set the scale).
 """
 
 from __future__ import annotations
@@ -44,9 +46,9 @@ from compare import versions  # this folder's, on the path when run as a script
 TASK = "Go1JoystickFlatTerrain"
 ENV = "mjx-robot/" + TASK
 TRAINERS = ("brax", "rpo_jax")
-# Brax with rpo_jax's policy (a Gaussian with a free log-scale starting at 1, no squashing): the
-# ablation that tells the policies' part in a difference of the curves from the trainers'.
-ABLATIONS = ("brax-gaussian",)
+# The ablations that tell the policies' part in a difference of the curves from the trainers': Brax
+# with a Gaussian policy starting at scale 1 (no squashing), and rpo_jax starting at scale 1.
+ABLATIONS = ("brax-gaussian", "rpo_jax-scale-1")
 NUM_STEPS, MINIBATCHES, EVALS, EVAL_EPISODES = 20, 4, 5, 16
 
 
@@ -91,15 +93,15 @@ def measure_brax(num_envs: int, timesteps: int, seed: int, gaussian: bool = Fals
     return {"curve": curve, "sps": sps, "brax_reported_sps": statistics.median(reported[1:]), **log.seconds(PROGRAMS["brax"])}
 
 
-def measure_rpo_jax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
-    """`python -m rpo_jax.train` at the `go1-joystick` preset, read from its run directory."""
+def measure_rpo_jax(num_envs: int, timesteps: int, seed: int, flags: tuple[str, ...] = ()) -> dict[str, Any]:
+    """`python -m rpo_jax.train` at the `go1-joystick` preset and `flags`, read from its run directory."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         command = [
             sys.executable, "-m", "rpo_jax.train", "--env", ENV, "--algo", "ppo", "--preset", "go1-joystick",
             "--num-envs", str(num_envs), "--num-minibatches", str(MINIBATCHES), "--total-timesteps", str(timesteps),
             "--eval-every", str(timesteps // EVALS), "--eval-episodes", str(EVAL_EPISODES), "--seed", str(seed),
-            "--checkpoint-every", "0", "--no-compile-cache", "--quiet", "--out", str(out),
+            "--checkpoint-every", "0", "--no-compile-cache", "--quiet", "--out", str(out), *flags,
         ]  # fmt: skip
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
         summary = json.loads((out / "summary.json").read_text())
@@ -108,7 +110,10 @@ def measure_rpo_jax(num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
     return {"curve": curve, "sps": summary["sps"], "compile_seconds": summary["compile_seconds"]}
 
 
-MEASURES = {"brax": measure_brax, "rpo_jax": measure_rpo_jax, "brax-gaussian": functools.partial(measure_brax, gaussian=True)}
+MEASURES = {
+    "brax": measure_brax, "rpo_jax": measure_rpo_jax, "brax-gaussian": functools.partial(measure_brax, gaussian=True),
+    "rpo_jax-scale-1": functools.partial(measure_rpo_jax, flags=("--init-log-scale", "0")),
+}  # fmt: skip
 
 
 def measure_in_subprocess(trainer: str, num_envs: int, timesteps: int, seed: int) -> dict[str, Any]:
@@ -149,7 +154,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
 
     figure, axes = pyplot.subplots(figsize=(6, 4))
     trainers = dict.fromkeys(run["trainer"] for run in results["runs"].values())
-    for color, trainer in zip(("tab:blue", "tab:orange", "tab:green"), trainers):
+    for color, trainer in zip(("tab:blue", "tab:orange", "tab:green", "tab:red"), trainers):
         mine = [run for run in results["runs"].values() if run["trainer"] == trainer]
         for index, run in enumerate(mine):
             steps, values = zip(*run["curve"])
