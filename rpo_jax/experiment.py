@@ -8,11 +8,10 @@ Each (environment, job) is one training run (`rpo_jax.run.chunks`): its seeds, a
 values, train together in one compiled program. Everything goes under --out: `runs/<env>/<job>/`
 (the training runs), `results.csv`, `report.md` and `figures/` (see `rpo_jax.report`).
 
-Started again with the same command, an experiment skips the runs that finished and resumes
-the unfinished one from its last checkpoint, so a crash loses at most one checkpoint interval
-of one run (--checkpoint-every; by default a tenth of a run of 5M steps or more, and no
-checkpoint in shorter runs, which start again) and the compile time. The same command with more
-environments in --envs grows the experiment: its runs stay, and the new environments' train.
+Started again with the same command, an experiment skips the runs that finished and resumes the
+unfinished one from its last checkpoint: a crash loses at most one checkpoint interval of one run
+(--checkpoint-every; by default a tenth of a run of 5M steps or more, a whole shorter run) and the
+compile time. More environments in --envs grow the experiment: its runs stay, the new ones train.
 """
 
 from __future__ import annotations
