@@ -13,8 +13,9 @@ the deterministic policy on 16 fresh episodes 5 times during training (Brax also
 
 What stays different, each a trainer's design: Brax's policy is Playground's tanh-squashed Gaussian
 with a softplus scale, rpo_jax's a Gaussian with a free log-scale, starting at e^-2 in the preset,
-whose actions are clipped to [-1, 1]; Brax draws each environment's physics once a run, rpo_jax once an episode; rpo_jax clips
-normalised observations at 10 and bootstraps truncated episodes from their last state's value.
+whose actions are clipped to [-1, 1]; Brax draws each environment's physics once a run, rpo_jax
+once an episode; rpo_jax clips normalised observations at 10 and bootstraps truncated episodes
+from their last state's value.
 
 Each (trainer, seed) trains in a fresh process, trainers alternating; a finished pair is kept in
 OUT/results.json and skipped when the command runs again. Training steps/s leave evaluation out
