@@ -8,15 +8,18 @@ evaluation during training (`--eval-every`), so that all three act and count ret
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from rpo_jax import envs
-from rpo_jax.config import Config
-from rpo_jax.networks import Actor, policy_distribution
+from rpo_jax.config import TANH_NORMAL, Config
+from rpo_jax.errors import UsageError
+from rpo_jax.networks import Actor, policy_distribution, to_action
 
 # act(obs, key=None, deterministic=True) -> action: a `Policy`, or one jitted (`load_policy`, `make_policy`).
 ActFn = Callable[..., jax.Array]
@@ -51,8 +54,8 @@ class Policy:
         if self.config.normalize_obs:
             obs = envs.normalize_observation(obs, stats, self.config.obs_clip)
         loc, log_scale = self.actor.apply(self.params, obs)
-        action = loc if deterministic else policy_distribution(loc, log_scale, self.config.dist).sample(seed=key)
-        return jnp.clip(action, self.low, self.high)
+        sample = loc if deterministic else policy_distribution(loc, log_scale, self.config.dist).sample(seed=key)
+        return jnp.clip(to_action(sample, self.config.dist, self.low, self.high), self.low, self.high)
 
     def policy_part(self, obs: jax.Array) -> tuple[jax.Array, envs.RunningMeanStd]:
         """The policy's part of `obs` (unchanged where it is that part already) and of the statistics."""
@@ -74,9 +77,18 @@ def part_statistics(stats: envs.RunningMeanStd, part: tuple[int, int] | None) ->
     return stats.replace(mean=stats.mean[..., part[0] : part[1]], var=stats.var[..., part[0] : part[1]])
 
 
+def make_actor(config: Config, spec: envs.EnvSpec) -> Actor:
+    """The actor of `config` in the environment of `spec`, reading the policy's part of its observation."""
+    state_dependent = config.dist == TANH_NORMAL
+    if state_dependent and not np.isfinite([*spec.action_low, *spec.action_high]).all():
+        raise UsageError(f"--dist tanh-normal squashes actions onto finite bounds; {spec.name}'s are unbounded")
+    reads = spec.part(spec.policy_obs_key)
+    return Actor(spec.action_size, tuple(config.hidden_sizes), config.activation, reads, config.init_log_scale, state_dependent)
+
+
 def policy_of(config: Config, spec: envs.EnvSpec, params: Any, obs_stats: envs.RunningMeanStd) -> Policy:
     """A run's `Policy` in the environment of `spec`, reading the policy's part of its observation."""
-    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation)
+    actor = dataclasses.replace(make_actor(config, spec), reads=None)  # `Policy` hands it the part
     low, high = jnp.asarray(spec.action_low), jnp.asarray(spec.action_high)
     return Policy(config, actor, params, obs_stats, low, high, spec.part(spec.policy_obs_key), spec.observation_size)
 

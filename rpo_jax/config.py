@@ -19,11 +19,14 @@ from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import SWEEPABLE, read_by
 
 AlgoName = Literal["ppo", "rpo", "rad", "drac"]
-DistName = Literal["gaussian", "laplace", "gumbel"]
+DistName = Literal["gaussian", "laplace", "gumbel", "tanh-normal"]
 ActivationName = Literal["tanh", "relu", "elu", "silu"]
 LrScheduleName = Literal["linear", "constant", "adaptive"]
 TruncationName = Literal["bootstrap", "terminate"]
 AUGMENTATIONS = ("none", "rad", "drac")
+# Brax's policy: a Gaussian over an unbounded u whose action is tanh(u), mapped onto the bounds
+# (`networks.TanhNormal`), its scale an output of the network with Brax's floor (its min_std).
+TANH_NORMAL, MIN_SCALE = "tanh-normal", 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,7 +103,7 @@ class Config:
     ent_coef: float = 0.0
     """entropy-bonus coefficient"""
     max_grad_norm: float = 0.5
-    """global-norm gradient clip"""
+    """global-norm gradient clip (0: none, as Brax without max_grad_norm)"""
     adam_eps: float = 1e-5
     """Adam epsilon"""
     norm_adv: bool = True
@@ -108,9 +111,9 @@ class Config:
     rpo_alpha: float = 0.5
     """rpo only: half-width of the uniform perturbation of the policy location (0 trains as ppo)"""
     dist: DistName = "gaussian"
-    """action distribution (state-dependent location, free log-scale)"""
+    """action distribution: the paper's (free log-scale) or tanh-normal (Brax's: squashed, the network's scale)"""
     init_log_scale: float = 0.0
-    """the policy's log-scale before training, in every action dimension (0: scale 1)"""
+    """the policy's log-scale before training, in every action dimension (0: scale 1); not for tanh-normal"""
     aug_low: float = 0.6
     """rad and drac only: lower bound of the amplitude-scaling factor"""
     aug_high: float = 1.2
@@ -230,17 +233,22 @@ def _check_ranges(config: Config) -> None:
     for name in ("total_timesteps", "num_envs", "num_steps", "num_minibatches", "update_epochs"):
         if getattr(config, name) <= 0:
             raise UsageError(f"{name} must be a positive integer, got {getattr(config, name)}")
-    for name in ("lr", "clip_coef", "max_grad_norm", "adam_eps", "obs_clip", "reward_clip", "kl_target", "reward_scale"):
+    for name in ("lr", "clip_coef", "adam_eps", "obs_clip", "reward_clip", "kl_target", "reward_scale"):
         if not getattr(config, name) > 0:
             raise UsageError(f"{name} must be > 0, got {getattr(config, name)}")
     for name in ("gamma", "gae_lambda"):
         if not 0 < getattr(config, name) <= 1:
             raise UsageError(f"{name} must be in (0, 1], got {getattr(config, name)}")
-    for name in ("rpo_alpha", "ent_coef", "vf_coef", "drac_coef"):
+    for name in ("rpo_alpha", "ent_coef", "vf_coef", "drac_coef", "max_grad_norm"):
         if not getattr(config, name) >= 0:
             raise UsageError(f"{name} must be >= 0, got {getattr(config, name)}")
     if not -10 <= config.init_log_scale <= 10:  # exp() of it stays far from float32 0 and inf
         raise UsageError(f"init_log_scale must be in [-10, 10], got {config.init_log_scale}")
+    if config.init_log_scale and config.dist == TANH_NORMAL:
+        raise UsageError(
+            f"init_log_scale applies to the gaussian, laplace and gumbel policies; tanh-normal's scale is an "
+            f"output of its network, got init_log_scale {config.init_log_scale}"
+        )
     if not 0 < config.aug_low <= config.aug_high:
         raise UsageError(f"aug_low and aug_high must satisfy 0 < aug_low <= aug_high, got {config.aug_low}, {config.aug_high}")
     if not config.hidden_sizes or min(config.hidden_sizes) <= 0:
@@ -311,15 +319,17 @@ PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
 def _playground(unroll_length: int, batch_size: int, **fields) -> Config:
     """One of MuJoCo Playground's Brax PPO configs (`locomotion_params`, `manipulation_params`) in
     rpo_jax's terms. Brax gathers batch_size x num_minibatches unrolls of `unroll_length` steps
-    an update, num_envs at a time: num_steps is that many steps per environment. Brax's choices
-    kept: constant learning rate, no reward normalisation, no value clipping, its value loss
-    (vf_coef 0.5 of a halved squared error), SiLU (its swish), Adam's epsilon 1e-8, clip 0.3.
-    Not reproduced: Brax's tanh-squashed policy with a state-dependent scale (rpo_jax's
-    Gaussian has a free log-scale), and observation normalisation without a clip (kept at 10)."""
+    an update, num_envs at a time: num_steps is that many steps per environment, so a preset with
+    fewer environments (the CPU's) keeps the samples per update. Brax's choices kept: its policy
+    (`tanh-normal`: a squashed Gaussian whose scale the network outputs), constant learning rate,
+    no reward normalisation, no value clipping, its value loss (vf_coef 0.5 of a halved squared
+    error), SiLU (its swish), Adam's epsilon 1e-8, clip 0.3, a gradient clip only where the task's
+    config sets one. Not reproduced: observation normalisation without a clip (kept at 10
+    standard deviations), GAE cut at each unroll of `unroll_length` (rpo_jax's runs over num_steps)."""
     base = dict(
         lr=3e-4, lr_schedule="constant", gamma=0.97, ent_coef=1e-2, clip_coef=0.3, clip_value_loss=False,
         max_grad_norm=1.0, adam_eps=1e-8, activation="silu", normalize_reward=False, num_minibatches=32,
-        update_epochs=4, num_envs=8192,
+        update_epochs=4, num_envs=8192, dist=TANH_NORMAL,
     )  # fmt: skip
     base.update(fields)
     base["num_steps"] = unroll_length * batch_size * base["num_minibatches"] // base["num_envs"]
@@ -328,30 +338,36 @@ def _playground(unroll_length: int, batch_size: int, **fields) -> Config:
 
 # Locomotion (`robot/` and `mjx-robot/` tasks), by the tasks they were tuned for.
 LEGGED = dict(hidden_sizes=(512, 256, 128))
-# The Go1 stands still under zero actions but falls within 2 s of actions with independent noise
-# of scale 0.3 (benchmarks/lab/go1_noise.py): its policy starts at scale e^-2 = 0.14, which it
-# survives, and learns from whole episodes (scale 1 trains on falls only; docs/robots.md).
-PRESETS["go1-joystick"] = _playground(20, 256, total_timesteps=200_000_000, init_log_scale=-2.0, **LEGGED)
+PRESETS["go1-joystick"] = _playground(20, 256, total_timesteps=200_000_000, **LEGGED)
 PRESETS["go1-getup"] = _playground(20, 256, total_timesteps=50_000_000, **LEGGED)
 PRESETS["go1-handstand"] = _playground(20, 256, total_timesteps=100_000_000, **LEGGED)
 PRESETS["humanoid-joystick"] = _playground(20, 256, total_timesteps=200_000_000, clip_coef=0.2, ent_coef=5e-3, **LEGGED)
 PRESETS["locomotion"] = _playground(
     20, 256, total_timesteps=100_000_000, hidden_sizes=(128,) * 4, critic_hidden_sizes=(256,) * 5
 )  # Playground's default, for its tasks without a tuned config (Spot)
-# Manipulation. Brax clips no gradient on these (max_grad_norm unset); rpo_jax clips at norm 1.
-MANIPULATION = dict(num_envs=2048, update_epochs=8, critic_hidden_sizes=(256,) * 5)
-PRESETS["panda-pick-cube"] = _playground(
-    10, 512, total_timesteps=20_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION
-)
+# Manipulation. Brax clips no gradient on these but the Cartesian pick-up (max_grad_norm unset).
+MANIPULATION = dict(num_envs=2048, update_epochs=8, critic_hidden_sizes=(256,) * 5, max_grad_norm=0.0)
+PANDA_PICK_CUBE = dict(total_timesteps=20_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION)
+PRESETS["panda-pick-cube"] = _playground(10, 512, **PANDA_PICK_CUBE)
+# The same on a CPU's envpool simulators: 64 of them (about 16k-24k steps/s on 2 cores, where 2,048
+# would be no faster), each stepping 2,560 steps an update so that an update's 163,840 samples and
+# its 32 minibatches x 8 epochs are Playground's.
+PRESETS["panda-pick-cube-cpu"] = _playground(10, 512, **{**PANDA_PICK_CUBE, "num_envs": 64})
 PRESETS["panda-open-cabinet"] = _playground(
     10, 512, total_timesteps=40_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION
 )
 PRESETS["panda-pick-cube-cartesian"] = _playground(
     10, 256, total_timesteps=5_000_000, lr=5e-4, ent_coef=7.5e-3, num_minibatches=8, reward_scale=0.1,
-    hidden_sizes=(256, 256), **{**MANIPULATION, "num_envs": 1024},
+    hidden_sizes=(256, 256), **{**MANIPULATION, "num_envs": 1024, "max_grad_norm": 1.0},
 )  # fmt: skip
 PRESETS["aloha-hand-over"] = _playground(
-    15, 512, total_timesteps=100_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(256,) * 3, **MANIPULATION
+    15,
+    512,
+    total_timesteps=100_000_000,
+    lr=1e-3,
+    ent_coef=2e-2,
+    hidden_sizes=(256,) * 3,
+    **{**MANIPULATION, "max_grad_norm": 1.0},
 )
 PRESETS["leap-cube-reorient"] = _playground(40, 256, total_timesteps=200_000_000, gamma=0.99, **LEGGED)
 PRESETS["leap-cube-rotate-z"] = _playground(40, 256, total_timesteps=100_000_000, **LEGGED)

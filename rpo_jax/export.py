@@ -9,14 +9,19 @@ environment's bounds).
 
 The `.npz` holds float32 arrays `obs_mean`, `obs_std`, `obs_clip`, `kernel_0`, `bias_0`, ...,
 `kernel_N`, `bias_N` (N + 1 dense layers, the last one the output), `action_low`, `action_high`,
-`log_std` (the state-independent log of the distribution's scale), the string `activation`
-(tanh, relu, elu or silu) and the string `distribution` (gaussian, laplace or gumbel). The
-forward pass, which `forward` implements:
+`log_std` (the state-independent log of the distribution's scale; tanh-normal's scale is the
+network's: `scale_kernel` and `scale_bias` instead), the string `activation` (tanh, relu, elu or
+silu) and the string `distribution` (gaussian, laplace, gumbel or tanh-normal). The forward pass,
+which `forward` implements:
 
     x = clip((obs - obs_mean) / obs_std, -obs_clip, obs_clip)
     x = activation(x @ kernel_i + bias_i)          for i in 0 .. N-1
     location = x @ kernel_N + bias_N
     action = clip(location, action_low, action_high)
+
+and for tanh-normal, the location squashed onto the bounds:
+
+    action = clip(c + h * tanh(location), action_low, action_high)   c, h = (high + low) / 2, (high - low) / 2
 
 The stochastic policy, which `sample` implements, draws each action dimension independently
 from `distribution` with that location and the scale exp(log_std), then clips it the same way:
@@ -24,9 +29,11 @@ from `distribution` with that location and the scale exp(log_std), then clips it
     gaussian: location + scale * normal()      scale is the standard deviation (numpy: rng.normal(location, scale))
     laplace:  location + scale * laplace()     scale b, the standard deviation sqrt(2) b (rng.laplace(location, scale))
     gumbel:   location + scale * gumbel()      the max-Gumbel, mean location + 0.5772 scale (rng.gumbel(location, scale))
+    tanh-normal: c + h * tanh(location + scale * normal()), scale = softplus(x @ scale_kernel + scale_bias) + 0.001
 
 so `log_std` is a standard deviation's log for the Gaussian only. The deterministic action is the
-location for each: the Gaussian's and Laplace's mean, the Gumbel's mode.
+location for each: the Gaussian's and Laplace's mean, the Gumbel's mode (tanh-normal: the squashed
+Gaussian mean, as Brax's policies act).
 
 A run trained without observation normalisation has obs_mean 0, obs_std 1 and obs_clip inf.
 Where the observation has named parts (a robot's `state` for the policy, `privileged_state` for
@@ -35,7 +42,8 @@ the critic), `obs` is the policy's part alone: the numbers the robot itself meas
 
 The ONNX model (opset 17) computes the same with input `obs` [batch, obs_size] float32 and
 output `action` [batch, action_size]; its metadata (`metadata_props`) hold `distribution` and
-`log_std` (a JSON list) for sampling as above. Its check needs the `onnx` extra (onnx, onnxruntime).
+`log_std` (a JSON list; none for tanh-normal, whose scale the ONNX model does not compute) for
+sampling as above. Its check needs the `onnx` extra (onnx, onnxruntime).
 
 Both files are written whole or not at all: through temporary files, published only when both
 are written, never over an existing file.
@@ -55,6 +63,7 @@ import numpy as np
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
+from rpo_jax.config import MIN_SCALE, TANH_NORMAL
 from rpo_jax.run.directory import RunDir, check_new_file
 from rpo_jax.run.options import TrainedRun, parse
 
@@ -85,6 +94,14 @@ def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray
     mlp = actor_params["params"]["MLP_0"]
     layers = [mlp[f"Dense_{i}"] for i in range(len(mlp))]
     arrays = {f"{kind}_{i}": np.asarray(layer[kind], np.float32) for i, layer in enumerate(layers) for kind in ("kernel", "bias")}
+    if config.dist == TANH_NORMAL:  # the last layer gives the location, then the scale's input
+        last, size = len(layers) - 1, spec.action_size
+        for kind in ("kernel", "bias"):
+            both = arrays[f"{kind}_{last}"]
+            arrays[f"{kind}_{last}"], arrays[f"scale_{kind}"] = both[..., :size], both[..., size:]
+        scale = {}
+    else:
+        scale = {"log_std": np.asarray(actor_params["params"]["log_std"], np.float32)}
     obs_size = arrays["kernel_0"].shape[0]
     if config.normalize_obs:
         mean, std, clip = np.asarray(stats.mean), np.asarray(stats.std), config.obs_clip
@@ -94,32 +111,51 @@ def policy_arrays(run_dir: Path, run: int | None = None) -> dict[str, np.ndarray
         "obs_mean": np.asarray(mean, np.float32), "obs_std": np.asarray(std, np.float32), "obs_clip": np.float32(clip),
         **arrays,
         "action_low": np.asarray(spec.action_low, np.float32), "action_high": np.asarray(spec.action_high, np.float32),
-        "log_std": np.asarray(actor_params["params"]["log_std"], np.float32), "activation": np.str_(config.activation),
-        "distribution": np.str_(config.dist),
+        **scale, "activation": np.str_(config.activation), "distribution": np.str_(config.dist),
     }  # fmt: skip
 
 
 def forward(arrays: Any, obs: np.ndarray) -> np.ndarray:
     """The deterministic action for raw observations [..., obs_size] from the `.npz`'s arrays."""
-    return np.clip(location(arrays, obs), arrays["action_low"], arrays["action_high"])
+    return bounded(arrays, location(arrays, hidden(arrays, obs)))
 
 
 def sample(arrays: Any, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """A stochastic action for raw observations [..., obs_size], as the policy draws it: from the
-    `.npz`'s `distribution` at the location with scale exp(log_std), clipped to the bounds."""
-    scale = np.exp(np.asarray(arrays["log_std"], np.float64))
-    draw = SAMPLERS[str(arrays["distribution"])](rng, location(arrays, obs), scale)
-    return np.clip(np.asarray(draw, np.float32), arrays["action_low"], arrays["action_high"])
+    `.npz`'s `distribution` at the location with its scale, squashed (tanh-normal) and clipped to the bounds."""
+    features = hidden(arrays, obs)
+    kind = str(arrays["distribution"])
+    if kind == TANH_NORMAL:
+        pre_softplus = np.asarray(features @ arrays["scale_kernel"] + arrays["scale_bias"], np.float64)
+        scale = np.logaddexp(0.0, pre_softplus) + MIN_SCALE
+        draw = SAMPLERS["gaussian"](rng, location(arrays, features), scale)
+    else:
+        draw = SAMPLERS[kind](rng, location(arrays, features), np.exp(np.asarray(arrays["log_std"], np.float64)))
+    return bounded(arrays, np.asarray(draw, np.float32))
 
 
-def location(arrays: Any, obs: np.ndarray) -> np.ndarray:
-    """The policy's location (before clipping) for raw observations [..., obs_size]."""
+def hidden(arrays: Any, obs: np.ndarray) -> np.ndarray:
+    """The last hidden layer's features for raw observations [..., obs_size]."""
     layers = sum(1 for name in arrays if name.startswith("kernel_"))
     activation = ACTIVATIONS[str(arrays["activation"])]
     x = np.clip((np.asarray(obs, np.float32) - arrays["obs_mean"]) / arrays["obs_std"], -arrays["obs_clip"], arrays["obs_clip"])
     for i in range(layers - 1):
         x = activation(x @ arrays[f"kernel_{i}"] + arrays[f"bias_{i}"])
-    return x @ arrays[f"kernel_{layers - 1}"] + arrays[f"bias_{layers - 1}"]
+    return x
+
+
+def location(arrays: Any, features: np.ndarray) -> np.ndarray:
+    """The policy's location (before squashing and clipping) from the last hidden features."""
+    layers = sum(1 for name in arrays if name.startswith("kernel_"))
+    return features @ arrays[f"kernel_{layers - 1}"] + arrays[f"bias_{layers - 1}"]
+
+
+def bounded(arrays: Any, sample: np.ndarray) -> np.ndarray:
+    """A sample (or the location) as the environment's action: squashed for tanh-normal, clipped."""
+    low, high = arrays["action_low"], arrays["action_high"]
+    if str(arrays["distribution"]) == TANH_NORMAL:
+        sample = (high + low) / 2 + (high - low) / 2 * np.tanh(sample)
+    return np.clip(sample, low, high)
 
 
 def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
@@ -127,7 +163,12 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     from onnx import TensorProto, helper, numpy_helper
 
     layers = sum(1 for name in arrays if name.startswith("kernel_"))
-    constants = {name: value for name, value in arrays.items() if name not in ("activation", "log_std", "distribution")}
+    squashed = str(arrays["distribution"]) == TANH_NORMAL
+    metadata = ("activation", "log_std", "distribution", "scale_kernel", "scale_bias")
+    constants = {name: value for name, value in arrays.items() if name not in metadata}
+    if squashed:
+        low, high = (np.asarray(arrays[name], np.float32) for name in ("action_low", "action_high"))
+        constants |= {"action_centre": (high + low) / 2, "action_half_width": (high - low) / 2}
     nodes = [
         helper.make_node("Sub", ["obs", "obs_mean"], ["centred"]),
         helper.make_node("Div", ["centred", "obs_std"], ["scaled"]),
@@ -142,8 +183,14 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
         ]
         if i < layers - 1:
             nodes += activation_nodes(str(arrays["activation"]), f"pre_{i}", f"x_{i + 1}")
+    if squashed:
+        nodes += [
+            helper.make_node("Tanh", ["location"], ["tanh_location"]),
+            helper.make_node("Mul", ["tanh_location", "action_half_width"], ["half_widths"]),
+            helper.make_node("Add", ["half_widths", "action_centre"], ["squashed"]),
+        ]
     nodes += [
-        helper.make_node("Max", ["location", "action_low"], ["raised"]),
+        helper.make_node("Max", ["squashed" if squashed else "location", "action_low"], ["raised"]),
         helper.make_node("Min", ["raised", "action_high"], ["action"]),
     ]
     obs_size, action_size = arrays["kernel_0"].shape[0], arrays[f"kernel_{layers - 1}"].shape[1]
@@ -155,7 +202,9 @@ def onnx_model(arrays: dict[str, np.ndarray]) -> Any:
     )  # fmt: skip
     # IR version 9 with opset 17: what onnxruntime releases since 1.15 load.
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], ir_version=9, producer_name="rpo_jax")
-    sampling = {"distribution": str(arrays["distribution"]), "log_std": json.dumps(np.asarray(arrays["log_std"]).tolist())}
+    sampling = {"distribution": str(arrays["distribution"])}
+    if not squashed:
+        sampling["log_std"] = json.dumps(np.asarray(arrays["log_std"]).tolist())
     helper.set_model_props(model, sampling)
     return model
 

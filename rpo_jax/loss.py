@@ -17,7 +17,7 @@ from flax import struct
 
 from rpo_jax.config import Config
 from rpo_jax.hyperparams import SWEEPABLE, Hyperparams
-from rpo_jax.networks import Actor, Critic, perturb_location, policy_distribution
+from rpo_jax.networks import Actor, Critic, TanhNormal, perturb_location, policy_distribution, policy_entropy
 
 # The declaration imports no JAX (the command line reads it); the loss, the first of the algorithm's
 # modules to read it, registers it as the pytree that training carries.
@@ -68,7 +68,7 @@ class Batch:
     """Rollout samples flattened over time and environments; leading axis [B]."""
 
     obs: jax.Array  # [B, obs_size]
-    actions: jax.Array  # [B, action_size] as sampled, before clipping to the bounds
+    actions: jax.Array  # [B, action_size] as sampled (tanh-normal's u, before the squash), before clipping to the bounds
     log_probs: jax.Array  # [B] under the unperturbed rollout policy
     values: jax.Array  # [B]
     advantages: jax.Array  # [B]
@@ -111,7 +111,7 @@ def drac_regulariser(
 
 def trained_policy(
     loc: jax.Array, log_scale: jax.Array, actions: jax.Array, key: jax.Array, config: Config, hparams: Hyperparams
-) -> tuple[distrax.Distribution, jax.Array, jax.Array]:
+) -> tuple[distrax.Distribution | TanhNormal, jax.Array, jax.Array]:
     """The policy the loss trains on a minibatch [B] (RPO's with its location perturbed), the
     stored actions' log-probabilities [B] under it, and under the unperturbed policy. Only RPO
     perturbs: the others' alpha is 0, whose draw would change no number (loc + 0 is loc) but cost
@@ -151,7 +151,8 @@ def ppo_loss(
         obs = amplitude_scale(obs, augment_key, config.aug_low, config.aug_high)
     loc, log_scale = actor.apply(params["actor"], obs)
     dist, log_probs, unperturbed_log_probs = trained_policy(loc, log_scale, batch.actions, perturb_key, config, hparams)
-    entropy = dist.entropy().mean()
+    # A key of its own for tanh-normal's sampled entropy estimate; the other families ignore it.
+    entropy = policy_entropy(dist, jax.random.fold_in(key, 2)).mean()
 
     ratio = jnp.exp(log_probs - batch.log_probs)
     unperturbed_log_ratio = jax.lax.stop_gradient(unperturbed_log_probs - batch.log_probs)

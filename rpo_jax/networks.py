@@ -10,6 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rpo_jax.config import MIN_SCALE, TANH_NORMAL
+
 ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu, "elu": nn.elu, "silu": nn.silu}
 
 
@@ -57,28 +59,38 @@ def read(obs: jax.Array, part: tuple[int, int] | None) -> jax.Array:
 
 
 class Actor(nn.Module):
-    """obs [..., obs_size] -> (location [..., action_size], log_scale [action_size]).
+    """obs [..., obs_size] -> (location [..., action_size], log_scale [action_size] or [..., action_size]).
 
-    The log-scale is one state-independent parameter vector, initialised to `init_log_scale`.
-    `reads`: the part of the observation it reads (`EnvSpec.part`), so that it never sees the
-    critic's."""
+    The log-scale is one state-independent parameter vector, initialised to `init_log_scale`;
+    with `state_dependent_scale` (Brax's policy, `TANH_NORMAL`) it is an output of the network
+    instead: the last layer gives 2 x action_size numbers, the location and s, and the scale is
+    softplus(s) + MIN_SCALE (about 0.69 at the start, where s is near 0). `reads`: the part of the
+    observation it reads (`EnvSpec.part`), so that it never sees the critic's."""
 
     action_size: int
     hidden_sizes: Sequence[int] = (64, 64)
     activation: str = "tanh"
     reads: tuple[int, int] | None = None
     init_log_scale: float = 0.0
+    state_dependent_scale: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        loc = MLP(self.hidden_sizes, self.activation, self.action_size, 0.01)(read(obs, self.reads))
+        outputs = self.action_size * (2 if self.state_dependent_scale else 1)
+        loc = MLP(self.hidden_sizes, self.activation, outputs, 0.01)(read(obs, self.reads))
+        if self.state_dependent_scale:
+            loc, scale_input = jnp.split(loc, 2, axis=-1)
+            return loc, jnp.log(jax.nn.softplus(scale_input) + MIN_SCALE)
         log_scale = self.param("log_std", nn.initializers.constant(self.init_log_scale), (self.action_size,))
         return loc, log_scale
 
 
-def actor_log_scale(actor_params: dict) -> jax.Array:
-    """The actor's state-independent log-scale [action_size], read from its parameters."""
-    return actor_params["params"]["log_std"]
+def mean_scale(actor: Actor, actor_params: dict, obs: jax.Array) -> jax.Array:
+    """The policy's scale averaged over action dimensions (and, where it depends on the state,
+    over the observations `obs` [..., obs_size])."""
+    if not actor.state_dependent_scale:
+        return jnp.exp(actor_params["params"]["log_std"]).mean()
+    return jnp.exp(actor.apply(actor_params, obs)[1]).mean()
 
 
 class Critic(nn.Module):
@@ -99,10 +111,63 @@ class Critic(nn.Module):
 DISTRIBUTIONS = {"gaussian": distrax.Normal, "laplace": distrax.Laplace, "gumbel": distrax.Gumbel}
 
 
-def policy_distribution(loc: jax.Array, log_scale: jax.Array, kind: str = "gaussian") -> distrax.Distribution:
+def policy_distribution(loc: jax.Array, log_scale: jax.Array, kind: str = "gaussian") -> distrax.Distribution | TanhNormal:
     """Factorised `kind` distribution over [..., action_size] with location `loc` and scale
     exp(log_scale); log_prob, entropy and KL sum over action dimensions."""
+    if kind == TANH_NORMAL:
+        return TanhNormal(loc, jnp.exp(log_scale))
     return distrax.Independent(DISTRIBUTIONS[kind](loc, jnp.exp(log_scale)), reinterpreted_batch_ndims=1)
+
+
+class TanhNormal:
+    """Brax's `NormalTanhDistribution`: a factorised Gaussian over an unbounded u [..., action_size]
+    whose action is tanh(u). As in Brax, samples, stored actions and log-probabilities are of u
+    (tanh saturates, so u could not be recovered from the action): log p(u) is the Gaussian's less
+    log|d tanh(u)/du| = 2 (log 2 - u - softplus(-2u)), the density of tanh(u) at the action. The
+    squashed distribution's entropy has no closed form; `entropy(seed)` is Brax's one-sample
+    estimate, the Gaussian's entropy plus that log-Jacobian at one draw of u. KL divergences are
+    the Gaussians' (a bijection leaves them unchanged). `to_action` maps tanh(u) onto the bounds."""
+
+    def __init__(self, loc: jax.Array, scale: jax.Array):
+        self.loc = loc
+        self.normal = distrax.Independent(distrax.Normal(loc, scale), reinterpreted_batch_ndims=1)
+
+    def sample(self, seed: jax.Array) -> jax.Array:
+        return self.normal.sample(seed=seed)
+
+    def log_prob(self, u: jax.Array) -> jax.Array:
+        return self.normal.log_prob(u) - tanh_log_jacobian(u)
+
+    def sample_and_log_prob(self, seed: jax.Array) -> tuple[jax.Array, jax.Array]:
+        u = self.sample(seed)
+        return u, self.log_prob(u)
+
+    def entropy(self, seed: jax.Array) -> jax.Array:
+        return self.normal.entropy() + tanh_log_jacobian(self.sample(seed))
+
+    def kl_divergence(self, other: TanhNormal) -> jax.Array:
+        return self.normal.kl_divergence(other.normal)
+
+
+def tanh_log_jacobian(u: jax.Array) -> jax.Array:
+    """log|d tanh(u)/du| summed over the last axis, in the form that stays finite for large |u|."""
+    return (2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))).sum(-1)
+
+
+def policy_entropy(dist: distrax.Distribution | TanhNormal, seed: jax.Array) -> jax.Array:
+    """The entropy of a policy distribution [...]: closed-form for the paper's families, Brax's
+    one-sample estimate from `seed` for `TanhNormal`."""
+    return dist.entropy(seed) if isinstance(dist, TanhNormal) else dist.entropy()
+
+
+def to_action(sample: jax.Array, kind: str, low: jax.Array, high: jax.Array) -> jax.Array:
+    """The environment's action for a sample (or the location) of a `kind` policy: tanh-normal's
+    squashed onto [low, high] (low + (tanh(u) + 1) (high - low) / 2: tanh(u) itself where the
+    bounds are [-1, 1], as in Brax); the others' as drawn, which the environment clips."""
+    if kind != TANH_NORMAL:
+        return sample
+    centre, half_width = (high + low) / 2, (high - low) / 2
+    return centre + half_width * jnp.tanh(sample)
 
 
 def perturb_location(loc: jax.Array, key: jax.Array, alpha: float | jax.Array) -> jax.Array:

@@ -31,12 +31,12 @@ import optax
 from flax import struct
 
 from rpo_jax import diagnostics, envs
-from rpo_jax.acting import wrap_for_training
+from rpo_jax.acting import make_actor, wrap_for_training
 from rpo_jax.config import Config
 from rpo_jax.cpu_workarounds import shuffled_indices
 from rpo_jax.hyperparams import Hyperparams
 from rpo_jax.loss import Batch, LossMetrics, compute_gae, ppo_loss
-from rpo_jax.networks import Actor, Critic, actor_log_scale, policy_distribution
+from rpo_jax.networks import Actor, Critic, mean_scale, policy_distribution, to_action
 
 # ---------------------------------------------------------------- the state
 
@@ -229,7 +229,7 @@ def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:
         episode_return=episode_return,
         episode_length=episode_length,
         episodes_finished=finished,
-        action_std=jnp.exp(actor_log_scale(params["actor"])).mean(),
+        action_std=mean_scale(trainer.actor, params["actor"], collected.batch.obs),
         learning_rate=state.opt_state.hyperparams["learning_rate"],
         **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
     )
@@ -248,13 +248,14 @@ def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key:
         env_state, obs = carry
         loc, log_scale = trainer.actor.apply(params["actor"], obs)
         action, log_prob = policy_distribution(loc, log_scale, trainer.config.dist).sample_and_log_prob(seed=key)
-        env_state, ts = trainer.env.step(env_state, action)
+        env_state, ts = trainer.env.step(env_state, to_action(action, trainer.config.dist, *bounds))
         transition = Transition(
             obs, ts.final_obs, action, log_prob, ts.reward, ts.terminated, ts.truncated,
             ts.info["episode_return"], ts.info["episode_length"],
         )  # fmt: skip
         return (env_state, ts.obs), transition
 
+    bounds = jnp.asarray(trainer.env.spec.action_low), jnp.asarray(trainer.env.spec.action_high)
     starts_key, key = jax.random.split(device_key(key, trainer.axis_name))
     # Episodes that end in this rollout restart from initial states drawn here, once; in the
     # first rollout every environment starts from them (`VectorEnv`'s deferred start).
@@ -377,21 +378,17 @@ def gradient_step(
 
 def make_networks(config: Config, spec: envs.EnvSpec) -> tuple[Actor, Critic]:
     """The trainer's networks, each reading its part of the environment's observation."""
-    reads = spec.part(spec.policy_obs_key)
-    actor = Actor(spec.action_size, tuple(config.hidden_sizes), config.activation, reads, config.init_log_scale)
     critic_sizes = tuple(config.critic_hidden_sizes or config.hidden_sizes)
-    return actor, Critic(critic_sizes, config.activation, spec.part(spec.critic_obs_key))
+    return make_actor(config, spec), Critic(critic_sizes, config.activation, spec.part(spec.critic_obs_key))
 
 
 def make_optimizer(config: Config) -> optax.GradientTransformation:
-    """Global-norm clipping then Adam, with the learning rate held in the state so that the
-    linear and adaptive schedules set it between steps."""
+    """Global-norm clipping (none where max_grad_norm is 0) then Adam, with the learning rate held
+    in the state so that the linear and adaptive schedules set it between steps."""
 
     def chain(learning_rate):
-        return optax.chain(
-            optax.clip_by_global_norm(config.max_grad_norm),
-            optax.adam(learning_rate, eps=config.adam_eps),
-        )
+        clip = optax.clip_by_global_norm(config.max_grad_norm) if config.max_grad_norm else optax.identity()
+        return optax.chain(clip, optax.adam(learning_rate, eps=config.adam_eps))
 
     return optax.inject_hyperparams(chain)(learning_rate=config.lr)
 

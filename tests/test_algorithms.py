@@ -16,7 +16,7 @@ from point_mass import PointMass
 from scipy import special, stats
 
 from rpo_jax import envs, loss, ppo, train
-from rpo_jax.config import Config
+from rpo_jax.config import TANH_NORMAL, Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution
 
 EULER_GAMMA = 0.5772156649015329
@@ -107,7 +107,7 @@ def assert_same_params(a, b):
     jax.tree.map(np.testing.assert_array_equal, a, b)
 
 
-@pytest.mark.parametrize("kind", sorted(DISTRIBUTIONS))
+@pytest.mark.parametrize("kind", [*sorted(DISTRIBUTIONS), TANH_NORMAL])
 def test_rpo_with_alpha_zero_is_ppo_for_every_distribution(kind, monkeypatch):
     config = dataclasses.replace(TINY, algo="rpo", dist=kind)
     rpo_params = one_update(config, rpo_alpha=0.0)

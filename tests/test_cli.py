@@ -146,7 +146,7 @@ def test_help_lists_every_field_with_choices_and_imports_no_jax():
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert "HEAVY []" in result.stdout
-    for text in ("--algo {ppo,rpo,rad,drac}", "--dist {gaussian,laplace,gumbel}", "--lr-schedule", "(default: 0.5)"):
+    for text in ("--algo {ppo,rpo,rad,drac}", "--dist {gaussian,laplace,gumbel,tanh-normal}", "--lr-schedule", "(default: 0.5)"):
         assert text in result.stdout, text
     assert "--rpo-alpha" in result.stdout and "--no-normalize-obs" in result.stdout
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, ppo
-from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, Config, choices
+from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, TANH_NORMAL, Config, choices
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import Hyperparams, read_by
-from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, actor_log_scale
+from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, mean_scale
 from rpo_jax.report import results
 
 
@@ -33,7 +33,7 @@ def test_algorithms_that_do_not_perturb_train_with_alpha_zero():
 
 def test_declared_choices_are_the_implemented_ones():
     assert choices("algo") == tuple(ALGORITHMS)
-    assert set(choices("dist")) == set(DISTRIBUTIONS)
+    assert set(choices("dist")) == {*DISTRIBUTIONS, TANH_NORMAL}
     assert set(choices("activation")) == set(ACTIVATIONS)
     assert tuple(ppo.Hyperparams.__dataclass_fields__) == SWEEPABLE
     hints = typing.get_type_hints(Config)
@@ -74,9 +74,10 @@ def test_unknown_choices_are_refused(field, value, message):
 def test_the_policy_starts_at_the_configured_log_scale():
     actor, _ = ppo.make_networks(Config(init_log_scale=-1.5), envs.env_spec("cartpole"))
     params = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 4)))
-    np.testing.assert_array_equal(actor_log_scale(params), np.full(1, -1.5, np.float32))
+    np.testing.assert_array_equal(params["params"]["log_std"], np.full(1, -1.5, np.float32))
+    np.testing.assert_allclose(mean_scale(actor, params, jnp.zeros((1, 4))), np.exp(-1.5))
     default, _ = ppo.make_networks(Config(), envs.env_spec("cartpole"))
-    assert not actor_log_scale(default.init(jax.random.PRNGKey(0), jnp.zeros((1, 4)))).any()
+    assert not default.init(jax.random.PRNGKey(0), jnp.zeros((1, 4)))["params"]["log_std"].any()
 
 
 def test_records_written_before_the_algorithm_table_still_load():

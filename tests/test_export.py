@@ -105,7 +105,9 @@ def test_the_sampled_action_is_clipped_and_the_deterministic_one_is_the_location
     obs = np.random.default_rng(1).normal(size=(4096, 2)).astype(np.float32)
     drawn = export.sample(arrays, obs, np.random.default_rng(2))
     assert drawn.min() >= -1 and drawn.max() <= 1 and np.unique(drawn).size > 100
-    np.testing.assert_array_equal(export.forward(arrays, obs), np.clip(export.location(arrays, obs), -1, 1))
+    np.testing.assert_array_equal(
+        export.forward(arrays, obs), np.clip(export.location(arrays, export.hidden(arrays, obs)), -1, 1)
+    )
 
 
 def test_export_refuses_what_it_cannot_do(tmp_path, capsys):
