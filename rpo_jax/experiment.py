@@ -61,8 +61,8 @@ SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") f
 # The IsaacGym tasks were trained with rl_games' settings for each task in the paper, everything
 # else with CleanRL's (the `paper` preset).
 TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
-# The robots train with Playground's config for each (its PPO results'); a legged robot and an arm.
-TASK_PRESETS.update({robot_tasks.PREFIX + task: facts.preset for task, facts in robot_tasks.TASKS.items()})
+# The robots train with Playground's config for each (its PPO results', `robot_tasks.preset_of`),
+# on either path and whatever the options of their names; a legged robot and an arm.
 SUITES["robots"] = ("robot/Go1JoystickFlatTerrain", "robot/PandaPickCube")
 
 # The paper's budget: 8M environment steps per run, 10 seeds per variant.
@@ -302,7 +302,7 @@ def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
 
 def job_config(definition: dict, env: str, job: Job) -> tuple[str, Any]:
     """The preset and the config of `job`'s run on `env`."""
-    preset = definition["preset"] or TASK_PRESETS.get(env, "paper")
+    preset = definition["preset"] or TASK_PRESETS.get(env) or robot_tasks.preset_of(env) or "paper"
     overrides = {"algo": job.algo, **dict(job.config), **definition["config"], "total_timesteps": definition["total_timesteps"]}
     if "hidden_sizes" in overrides:
         overrides["hidden_sizes"] = tuple(overrides["hidden_sizes"])  # JSON's list, as the flag gives it

@@ -18,6 +18,7 @@ import pytest
 from rpo_jax import envs, evaluate, experiment, load_policy, train
 from rpo_jax.experiment import Job, progress_line
 from rpo_jax.errors import UsageError
+from rpo_jax.envs import robot_tasks
 from rpo_jax.report import compose
 from rpo_jax.report import results
 from rpo_jax.run import chunks
@@ -109,6 +110,19 @@ def test_robot_settings_become_options_of_the_experiments_robots():
     assert experiment.resolve(args)["envs"] == ["robot/Go1JoystickFlatTerrain?noise_level=0.0"]
     with pytest.raises(UsageError, match="PandaPickCube has no setting noise_level"):
         experiment.resolve(experiment.parse_args(["robots", "--obs-noise", "0"]))
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["robot/Go1JoystickFlatTerrain?noise_level=0.0", "mjx-robot/Go1JoystickFlatTerrain", "mjx-robot/Go1Getup?randomize=false"],
+)
+def test_a_robot_trains_with_its_own_preset_whatever_its_name_options(name):
+    definition = {"preset": None, "config": {}, "total_timesteps": 8192}
+    task = name.split("/")[1].partition("?")[0]
+    preset, config = experiment.job_config(definition, name, experiment.RPO)
+    assert preset == robot_tasks.TASKS[task].preset and config.dist == "tanh-normal" and config.gamma == 0.97
+    assert experiment.job_config(definition, "cartpole", experiment.RPO)[0] == "isaacgym"
+    assert experiment.job_config(definition, "gym/Pendulum-v1", experiment.RPO)[0] == "paper"
 
 
 @pytest.mark.slow  # 50 s; a run resuming exactly stays in test_resume and test_user_envs

@@ -58,6 +58,22 @@ TASKS = {
 }  # fmt: skip
 
 
+def task_of(name: str) -> str | None:
+    """The task a robot's name trains on, on either path and whatever its options
+    ('mjx-robot/Go1JoystickFlatTerrain?noise_level=0' -> 'Go1JoystickFlatTerrain'); None for another name."""
+    for prefix in (PREFIX, MJX_PREFIX):
+        if name.startswith(prefix):
+            task = name.removeprefix(prefix).partition("?")[0]
+            return task if task in TASKS else None
+    return None
+
+
+def preset_of(name: str) -> str | None:
+    """The preset of Playground's config for the robot that `name` trains (`task_of`); None for another name."""
+    task = task_of(name)
+    return TASKS[task].preset if task else None
+
+
 def spec(task: str, name: str, backend: str) -> EnvSpec:
     """The spec of `task` under `name`: the policy reads `state`, the critic `privileged_state`
     (a flat task's one observation both)."""
