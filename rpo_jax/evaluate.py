@@ -25,6 +25,7 @@ MUJOCO_GL variable before MuJoCo is first imported. Writing MP4 needs the `video
 from __future__ import annotations
 
 import dataclasses
+import json
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Sequence
@@ -43,7 +44,7 @@ if TYPE_CHECKING:
     import jax
     import numpy as np
 
-    from rpo_jax import envs
+    from rpo_jax import envs, robustness
     from rpo_jax.acting import ActFn
 
 
@@ -85,6 +86,9 @@ class EvaluateArgs:
     """seed of other episodes; default: the run's own seed, which gives the episodes of its final evaluation in training"""
     video: Annotated[Path | None, tyro.conf.arg(metavar="OUT.mp4")] = None
     """also render one episode to this file"""
+    perturb: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="AXIS=START:STOP:COUNT")] = ()
+    """evaluate over a grid of changed physics instead (repeat for more axes): friction, joint-friction, mass, gain, damping,
+    gravity (scale factors), obs-noise, action-noise (standard deviations), delay (steps); docs: Robustness"""
     cache: tyro.conf.OmitArgPrefixes[CompileCache] = CompileCache()
 
 
@@ -112,6 +116,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run_command(args: EvaluateArgs) -> None:
     saved, run = RunDir(args.trained.run_dir).trained_run(args.trained.run)
+    if args.perturb:
+        return evaluate_perturbed(args, saved, run)
     if args.video:
         check_video_path(args.video)
     import jax
@@ -146,6 +152,70 @@ def run_command(args: EvaluateArgs) -> None:
         (episode,) = video.record(env, run_policy(run), 1, key, deterministic)
         video.write_mp4(args.video, [episode])
         print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
+
+
+def evaluate_perturbed(args: EvaluateArgs, saved: dict, run: int) -> None:
+    """The run's deterministic policy over the grid of --perturb, in one program: a table, and a
+    JSON file and a figure written new into the run directory."""
+    if args.stochastic or args.video:
+        raise UsageError("--perturb evaluates the deterministic policy without a video; drop --stochastic and --video")
+    import time
+
+    import jax
+
+    from rpo_jax import robustness
+    from rpo_jax.acting import policy_of
+    from rpo_jax.envs.protocol import EnvSpec
+    from rpo_jax.report.figures import robustness_figure
+    from rpo_jax.run.saved_policy import load_run
+
+    grid = robustness.Grid.parse(args.perturb)
+    config, spec, actor_params, stats = load_run(args.trained.run_dir, run)
+    env = rebuilt_env(saved["env"], args.trained.run_dir)
+    episodes = args.eval_episodes or 16
+    seed = saved["runs"][run]["seed"] if args.seed is None else args.seed
+    policy = policy_of(config, EnvSpec.from_record(spec), actor_params, stats)
+    started = time.perf_counter()
+    result = robustness.evaluate_under(env, policy, grid, episodes, jax.random.PRNGKey(seed))
+    seconds = time.perf_counter() - started
+    stem = new_stem(args.trained.run_dir, "robustness-" + "-".join(grid.axes))
+    record = {
+        "run": run, "seed": seed, "episodes": episodes, "axes": list(grid.axes), "values": [list(v) for v in grid.values],
+        "mean_returns": result.means.tolist(), "returns": result.returns.tolist(),
+        "nominal_returns": result.nominal_returns.tolist(), **result.summary(), "seconds": seconds,
+    }  # fmt: skip
+    robustness_figure(result, f"{saved['env']} run {run}", stem.with_suffix(".png"))
+    stem.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
+    print(perturbed_table(result))
+    print(
+        f"{saved['env']} run {run} (seed {seed}), deterministic policy, {episodes} episodes a point: nominal "
+        f"{result.nominal:.2f}, grid mean {result.means.mean():.2f}, worst {result.means.min():.2f}, "
+        f"{result.kept_share:.0%} of points keep {robustness.KEPT_SHARE:.0%} of nominal; "
+        f"{result.means.size} points in one program, {seconds:.1f} s"
+    )
+    print(f"wrote {stem.with_suffix('.json')} and {stem.with_suffix('.png')}")
+
+
+def new_stem(directory: Path, name: str) -> Path:
+    """`directory / name`, or with -2, -3, ... where a file of that stem exists: never over one."""
+    stem, number = directory / name, 1
+    while any(stem.with_suffix(suffix).exists() for suffix in (".json", ".png", ".pdf")):
+        number += 1
+        stem = directory / f"{name}-{number}"
+    return stem
+
+
+def perturbed_table(result: robustness.Result) -> str:
+    """Mean returns over the grid: one axis a column, two a matrix (rows the first axis), more a list of points."""
+    grid = result.grid
+    if len(grid.axes) == 2:
+        header = f"{grid.axes[0]} \\ {grid.axes[1]}".ljust(22) + "".join(f"{v:>10g}" for v in grid.values[1])
+        rows = [f"{a:<22g}" + "".join(f"{m:>10.2f}" for m in row) for a, row in zip(grid.values[0], result.means)]
+        return "\n".join([header, *rows])
+    points = grid.points()
+    header = "".join(f"{axis:>14}" for axis in grid.axes) + f"{'return':>12}"
+    rows = ["".join(f"{v:>14g}" for v in point) + f"{m:>12.2f}" for point, m in zip(points, result.means.reshape(-1))]
+    return "\n".join([header, *rows])
 
 
 def over_runs(saved: dict, means: list[float]) -> str:

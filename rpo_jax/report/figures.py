@@ -253,3 +253,29 @@ def perturbed_gaussian(path: Path, samples: int = 1_000_000, alpha: float = 3.0)
     axis.set_title("Gaussian and perturbed Gaussian")
     axis.legend(fontsize=8)
     return _save(fig, path)
+
+
+def robustness_figure(result: Any, title: str, path: Path) -> str:
+    """A `robustness.Result`'s mean returns: a line over one axis, a heatmap over two (the mean
+    over any further axes), the nominal return marked. Writes `path` (PNG) and its PDF."""
+    plt = pyplot()
+    grid, means = result.grid, result.means
+    fig, axis = plt.subplots(figsize=(5.5, 4))
+    if len(grid.axes) == 1:
+        axis.plot(grid.values[0], means, marker="o")
+        axis.axhline(result.nominal, color="grey", linestyle="--", label=f"nominal {result.nominal:.1f}")
+        axis.set_xlabel(grid.axes[0])
+        axis.set_ylabel("mean return")
+        axis.legend(frameon=False)
+    else:
+        plane = means.reshape(*grid.shape[:2], -1).mean(-1)
+        image = axis.imshow(plane, origin="lower", aspect="auto", cmap="viridis")
+        axis.set_xticks(range(grid.shape[1]), [f"{v:g}" for v in grid.values[1]])
+        axis.set_yticks(range(grid.shape[0]), [f"{v:g}" for v in grid.values[0]])
+        axis.set_xlabel(grid.axes[1])
+        axis.set_ylabel(grid.axes[0])
+        for (row, column), value in np.ndenumerate(plane):
+            axis.text(column, row, f"{value:.0f}", ha="center", va="center", color="white", fontsize=8)
+        fig.colorbar(image, ax=axis, label=f"mean return (nominal {result.nominal:.1f})")
+    axis.set_title(title, fontsize=9)
+    return _save(fig, path)
