@@ -127,7 +127,7 @@ def evaluate_under(env: envs.Env, policy: ActFn, grid: Grid, episodes: int, key:
     nominal = np.asarray([[NOMINAL[axis] for axis in grid.axes]], np.float32)
 
     def returns_at(point: jax.Array) -> jax.Array:
-        perturbed = Perturbed(env, {axis: point[i] for i, axis in enumerate(grid.axes)})
+        perturbed = Perturbed(env, {axis: (point[i], point[i]) for i, axis in enumerate(grid.axes)})
         return first_episode_returns(perturbed, policy, episodes, key, deterministic=True)[0]
 
     returns = np.asarray(jax.jit(jax.vmap(returns_at))(jnp.asarray(np.concatenate([grid.points(), nominal]))))

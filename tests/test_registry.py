@@ -10,6 +10,7 @@ import pytest
 from rpo_jax import envs
 from rpo_jax.envs.__main__ import extras_lines
 from rpo_jax.envs.registry import EXTRAS
+from rpo_jax.errors import UsageError
 
 SIMULATORS = ("mujoco", "brax", "envpool", "gymnasium", "gym", "pybullet", "pybullet_envs", "mujoco_playground")
 
@@ -143,3 +144,19 @@ def test_unknown_name_is_one_short_line_with_close_matches():
     assert str(error.value) == (
         "unknown env 'zzzzzzzz'; python -m rpo_jax.envs lists them, or give an import path package.module:factory"
     )
+
+
+def test_an_mjx_robots_randomiser_is_the_module_its_name_imports(tmp_path, monkeypatch):
+    from rpo_jax.envs.registry import check_import_outside, imported_module
+
+    name = "mjx-robot/Go1JoystickFlatTerrain?randomize=my_randomisers.go1:draw"
+    assert imported_module(name) == "my_randomisers.go1"  # not the name before its first ':'
+    assert imported_module("mjx-robot/Go1JoystickFlatTerrain?randomize=false") is None
+    assert imported_module("cartpole+mass=0.8:1.2") is None  # a perturbed name's ranges import nothing
+    check_import_outside(name, tmp_path)  # resume and evaluate accept it
+    with pytest.raises(UsageError, match="a module of Python's standard library"):
+        check_import_outside("mjx-robot/Go1JoystickFlatTerrain?randomize=os:system", tmp_path)
+    (tmp_path / "planted.py").write_text("def draw(model, rng): ...\n")
+    monkeypatch.syspath_prepend(str(tmp_path))  # as when run from inside the run directory
+    with pytest.raises(UsageError, match="inside the run directory"):
+        check_import_outside("mjx-robot/Go1JoystickFlatTerrain?randomize=planted:draw", tmp_path)

@@ -33,12 +33,16 @@ def cartpole():
 def test_an_axis_moves_the_fields_it_names_and_nothing_else(cartpole):
     nominal = simulated_model(cartpole)
     for axis, fields in {"mass": {"body_mass", "body_inertia"}, "gain": {"actuator_gainprm", "actuator_biasprm"}}.items():
-        changed = simulated_model(Perturbed(cartpole, {axis: 2.0}).env)
+        changed = simulated_model(Perturbed(cartpole, {axis: (2.0, 2.0)})._simulator(jnp.asarray([2.0])))
         for name in vars(nominal):
             before, after = jax.tree.leaves(getattr(nominal, name)), jax.tree.leaves(getattr(changed, name))
             same = all(np.array_equal(a, b) for a, b in zip(before, after))
             assert same != (name in fields and any(np.asarray(a).any() for a in before)), (axis, name)
-    np.testing.assert_allclose(simulated_model(Perturbed(cartpole, {"gravity": 0.5}).env).opt.gravity, [0, 0, -4.905], rtol=1e-6)
+    np.testing.assert_allclose(
+        simulated_model(Perturbed(cartpole, {"gravity": (0.5, 0.5)})._simulator(jnp.asarray([0.5]))).opt.gravity,
+        [0, 0, -4.905],
+        rtol=1e-6,
+    )
     assert simulated_model(cartpole) is nominal  # the original is untouched
 
 
@@ -47,7 +51,8 @@ def test_nominal_values_reproduce_the_nominal_evaluation_exactly(cartpole):
     # A factor of 1 leaves the model bit for bit; in the grid's program (every point a lane of one
     # vmapped batch) the nominal point is the nominal physics' lane, bit for bit. (Another program,
     # fused otherwise by XLA, rounds otherwise, which Cartpole's chaos amplifies: evaluate.py's docstring.)
-    unchanged = simulated_model(Perturbed(cartpole, {"mass": 1.0, "gain": 1.0, "gravity": 1.0}).env)
+    nominal = {"mass": (1.0, 1.0), "gain": (1.0, 1.0), "gravity": (1.0, 1.0)}
+    unchanged = simulated_model(Perturbed(cartpole, nominal)._simulator(jnp.ones(3)))
     jax.tree.map(np.testing.assert_array_equal, unchanged, simulated_model(cartpole))
     grid = robustness.Grid.parse(["mass=1,2", "obs-noise=0,0.3", "delay=0,2"])
     result = robustness.evaluate_under(cartpole, balancing, grid, 6, key)
@@ -94,7 +99,7 @@ def test_axes_a_task_cannot_apply_are_refused(cartpole):
     with pytest.raises(UsageError, match="friction changes nothing in cartpole"):
         check_axes(cartpole, ("friction",))
     pendulum = envs.make_env("gym/Pendulum-v1")  # JAX, no MJX model: only sensing and acting axes
-    with pytest.raises(UsageError, match="not simulated by MJX inside the program, so mass cannot change"):
+    with pytest.raises(UsageError, match="has no MJX model that rpo_jax scales .*, so mass cannot change"):
         check_axes(pendulum, ("mass",))
     check_axes(pendulum, ("obs-noise", "delay"))
 
@@ -130,3 +135,53 @@ def test_the_command_writes_a_table_json_and_figure_and_never_over_them(finished
 def test_the_command_refuses_a_bad_grid_in_one_line(finished, capsys, extra, message):
     assert evaluate.main([str(finished), *extra]) == 2
     assert message in one_line(capsys)
+
+
+def test_ranges_are_drawn_per_episode_from_the_reset_key():
+    env = envs.make_env("cartpole+mass=0.5:2+delay=0:3")
+    keys = jax.random.split(jax.random.PRNGKey(0), 256)
+    states, _ = jax.vmap(env.reset)(keys)
+    mass, delay = np.asarray(states.values).T
+    assert 0.5 <= mass.min() < 0.6 and 1.9 < mass.max() <= 2 and np.unique(mass).size == 256
+    assert set(delay) == {0, 1, 2, 3}
+    np.testing.assert_array_equal(jax.vmap(env.reset)(keys)[0].values, states.values)
+    # Each environment steps its own model: the same action moves two masses apart.
+    stepped, _ = jax.vmap(env.step)(states, jnp.ones((256, 1)))
+    assert np.unique(np.asarray(stepped.inner.qvel[:, 0])).size > 200
+
+
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("cartpole+mass=1.2:0.8", "0 <= LOW <= HIGH"),
+        ("cartpole+mass=0.8:1.2+mass=1", "mass is given twice"),
+        ("cartpole+delay=0:20", "whole control steps in [0, 8]"),
+        ("cartpole+wind=1", "AXIS one of friction"),
+    ],
+)
+def test_a_bad_range_is_one_line(name, message):
+    with pytest.raises(UsageError) as error:
+        envs.make_env(name)
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_randomised_run_records_its_ranges_resumes_exactly_and_evaluates(tmp_path):
+    import shutil
+
+    from point_mass_runs import NUM_ENVS, NUM_STEPS, TINY_FLAGS_ANY_ENV
+
+    from rpo_jax import train
+    from rpo_jax.run.directory import CONFIG_FILE, PARAMS_FILE, SUMMARY_FILE
+
+    out, name = tmp_path / "run", "cartpole+gain=0.5:1.5+obs-noise=0:0.1"
+    flags = ["--env", "cartpole", "--randomize", "gain=0.5:1.5", "--randomize", "obs-noise=0:0.1", *TINY_FLAGS_ANY_ENV]
+    assert train.main([*flags, "--total-timesteps", str(NUM_ENVS * NUM_STEPS * 4), "--out", str(out),
+                       "--checkpoint-every", str(NUM_ENVS * NUM_STEPS)]) == 0  # fmt: skip
+    assert json.loads((out / CONFIG_FILE).read_text())["env"] == name
+    unfinished = tmp_path / "unfinished"  # as if killed after its last checkpoint
+    shutil.copytree(out, unfinished)
+    (unfinished / SUMMARY_FILE).unlink()
+    (unfinished / PARAMS_FILE).unlink()
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    assert (unfinished / PARAMS_FILE).read_bytes() == (out / PARAMS_FILE).read_bytes()
+    assert evaluate.main([str(unfinished), "--episodes", "2"]) == 0

@@ -21,6 +21,8 @@ nothing). Sensing and acting axes wrap any environment inside the program:
 from __future__ import annotations
 
 import copy
+import dataclasses
+import math
 from typing import Any, Callable
 
 import jax
@@ -31,6 +33,8 @@ from rpo_jax.envs.protocol import Env, TimeStep
 from rpo_jax.errors import UsageError
 
 MAX_DELAY = 8
+# A task's name, then its perturbations drawn per episode: `cartpole+mass=0.8:1.2+obs-noise=0:0.05`.
+SEPARATOR = "+"
 
 
 def _scaled(field: str) -> Callable[[Any, jax.Array], dict[str, Any]]:
@@ -91,8 +95,8 @@ def check_axes(env: Env, axes: tuple[str, ...]) -> None:
         model = simulated_model(env)
         if model is None:
             raise UsageError(
-                f"{env.spec.name} is not simulated by MJX inside the program, so {axis} cannot change; "
-                f"its axes are {', '.join(SIGNAL_AXES)}"
+                f"{env.spec.name} has no MJX model that rpo_jax scales (cartpole's and ballbalance's), so {axis} "
+                f"cannot change; its axes are {', '.join(SIGNAL_AXES)}"
             )
         field = MODEL_AXES[axis][1]
         values = model.opt.gravity if field == "opt.gravity" else getattr(model, field)
@@ -106,42 +110,96 @@ class PerturbedState:
     inner: Any
     key: jax.Array
     actions: jax.Array  # [MAX_DELAY + 1, action_size] the latest actions, newest first
+    values: jax.Array  # [axes] this episode's value of each axis
 
 
 class Perturbed:
-    """`env` with the perturbations `values` (axis -> value, possibly traced): its model's fields
-    scaled, noise on what it observes and on what it is told to do, its actions delayed."""
+    """`env` with each axis of `ranges` (axis -> (low, high), possibly traced) at a value drawn per
+    episode, uniformly, from its reset key (a delay: a whole number of steps in [low, high]);
+    low == high fixes it. The model's fields scaled, noise on what it observes and on what it is
+    told to do, its actions delayed. The simulator resets with the key it is given, so at nominal
+    values the episodes are the unperturbed ones. `name`: the spec's name, where it differs."""
 
-    def __init__(self, env: Env, values: dict[str, jax.Array | float]) -> None:
-        self.values = {name: values.get(name, NOMINAL[name]) for name in AXES}
-        self.model_axes = [name for name in MODEL_AXES if name in values]
-        self.env = with_model(env, self._changed) if self.model_axes else env
-        self.spec = env.spec
+    def __init__(self, env: Env, ranges: dict[str, tuple[Any, Any]], name: str | None = None) -> None:
+        self.env, self.axes = env, tuple(ranges)
+        self.low = jnp.stack([jnp.asarray(ranges[axis][0], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
+        self.high = jnp.stack([jnp.asarray(ranges[axis][1], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
+        self.spec = env.spec if name is None else dataclasses.replace(env.spec, name=name)
 
-    def _changed(self, model: Any) -> Any:
-        for name in self.model_axes:
-            model = model.replace(**MODEL_AXES[name][0](model, jnp.asarray(self.values[name], jnp.float32)))
-        return model
+    def _draw(self, key: jax.Array) -> jax.Array:
+        u = jax.random.uniform(key, self.low.shape)
+        values = self.low + (self.high - self.low) * u
+        is_delay = jnp.asarray([axis == "delay" for axis in self.axes], bool)
+        steps = jnp.minimum(jnp.floor(self.low + (self.high - self.low + 1) * u), self.high)
+        return jnp.where(is_delay, steps, values)
+
+    def _value(self, values: jax.Array, axis: str) -> jax.Array | float:
+        return values[self.axes.index(axis)] if axis in self.axes else NOMINAL[axis]
+
+    def _simulator(self, values: jax.Array) -> Env:
+        """The environment with this episode's model."""
+        changed = [axis for axis in MODEL_AXES if axis in self.axes]
+        if not changed:
+            return self.env
+
+        def change(model: Any) -> Any:
+            for axis in changed:
+                model = model.replace(**MODEL_AXES[axis][0](model, self._value(values, axis)))
+            return model
+
+        return with_model(self.env, change)
 
     def reset(self, key: jax.Array) -> tuple[PerturbedState, TimeStep]:
-        # The simulator gets `key` itself: at nominal values the episodes are the unperturbed ones.
-        inner, ts = self.env.reset(key)
-        noise_key, key = jax.random.split(jax.random.fold_in(key, 0x0B5E))
+        draw_key, noise_key, key = jax.random.split(jax.random.fold_in(key, 0x0B5E), 3)
+        values = self._draw(draw_key)
+        inner, ts = self._simulator(values).reset(key)
         actions = jnp.zeros((MAX_DELAY + 1, self.spec.action_size))
-        return PerturbedState(inner, key, actions), self._observed(ts, noise_key)
+        return PerturbedState(inner, key, actions, values), self._observed(ts, noise_key, values)
 
     def step(self, state: PerturbedState, action: jax.Array) -> tuple[PerturbedState, TimeStep]:
         action_key, noise_key, key = jax.random.split(state.key, 3)
-        noisy = action + self.values["action-noise"] * jax.random.normal(action_key, action.shape)
+        noisy = action + self._value(state.values, "action-noise") * jax.random.normal(action_key, action.shape)
         low, high = jnp.asarray(self.spec.action_low), jnp.asarray(self.spec.action_high)
         actions = jnp.concatenate([jnp.clip(noisy, low, high)[None], state.actions[:-1]])
-        delay = jnp.asarray(self.values["delay"]).astype(jnp.int32)
-        inner, ts = self.env.step(state.inner, actions[delay])
-        return PerturbedState(inner, key, actions), self._observed(ts, noise_key)
+        delay = jnp.asarray(self._value(state.values, "delay")).astype(jnp.int32)
+        inner, ts = self._simulator(state.values).step(state.inner, actions[delay])
+        return state.replace(inner=inner, key=key, actions=actions), self._observed(ts, noise_key, state.values)
 
-    def _observed(self, ts: TimeStep, key: jax.Array) -> TimeStep:
-        noise = self.values["obs-noise"] * jax.random.normal(key, ts.obs.shape)
+    def _observed(self, ts: TimeStep, key: jax.Array, values: jax.Array) -> TimeStep:
+        noise = self._value(values, "obs-noise") * jax.random.normal(key, ts.obs.shape)
         return ts.replace(obs=ts.obs + noise, final_obs=ts.final_obs + noise)
+
+
+def parse_ranges(name: str, text: str) -> dict[str, tuple[float, float]]:
+    """The ranges after a name's first SEPARATOR: 'mass=0.8:1.2+delay=0:2' -> {'mass': (0.8, 1.2),
+    'delay': (0.0, 2.0)} (a single value fixes the axis); one line (UsageError) for anything else."""
+    ranges: dict[str, tuple[float, float]] = {}
+    for part in text.split(SEPARATOR):
+        axis, equals, values = part.partition("=")
+        if not equals or axis not in AXES:
+            raise UsageError(f"env {name!r}: {part!r} is not AXIS=LOW:HIGH with AXIS one of {', '.join(AXES)}")
+        if axis in ranges:
+            raise UsageError(f"env {name!r}: {axis} is given twice")
+        try:
+            low, _, high = values.partition(":")
+            bounds = (float(low), float(high or low))
+        except ValueError:
+            raise UsageError(f"env {name!r}: {part!r}: LOW and HIGH must be numbers") from None
+        if not all(math.isfinite(b) for b in bounds) or not 0 <= bounds[0] <= bounds[1]:
+            raise UsageError(f"env {name!r}: {part!r}: the range must be finite with 0 <= LOW <= HIGH")
+        if axis == "delay" and (bounds[1] > MAX_DELAY or any(b != int(b) for b in bounds)):
+            raise UsageError(f"env {name!r}: {part!r}: a delay is whole control steps in [0, {MAX_DELAY}]")
+        ranges[axis] = bounds
+    return ranges
+
+
+def perturbed(env: Env, ranges: dict[str, tuple[float, float]], name: str) -> Perturbed:
+    """`env` under `ranges` drawn per episode, named `name`; UsageError where it cannot apply them
+    (a host-side simulator, or an axis its model lacks)."""
+    if not hasattr(env, "reset") or getattr(env, "spec", None) is None or env.spec.backend == "host":
+        raise UsageError(f"env {name!r}: perturbations apply to tasks simulated inside the program, not host-side ones")
+    check_axes(env, tuple(ranges))
+    return Perturbed(env, ranges, name)
 
 
 def with_model(env: Env, change: Callable[[Any], Any]) -> Env:

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Callable
 
 from rpo_jax.envs import (
-    ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, mjx_robots, playground, pybullet, robots,
+    ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, mjx_robots, perturbations, playground, pybullet,
+    robot_tasks, robots,
 )  # fmt: skip
 from rpo_jax.envs.check import missing_members
 from rpo_jax.envs.protocol import BatchedEnv, Env, EnvSpec, MissingExtraError
@@ -59,6 +60,11 @@ def env_names() -> tuple[str, ...]:
 def _entry(name: str) -> _Entry:
     if name in _REGISTRY:
         return _REGISTRY[name]
+    base, separator, ranges = name.partition(perturbations.SEPARATOR)
+    if separator:  # a task whose physics or sensing is drawn per episode: `cartpole+mass=0.8:1.2`
+        inner, parsed = _entry(base), perturbations.parse_ranges(name, ranges)
+        spec = dataclasses.replace(inner.spec, name=name) if inner.spec else None
+        return _Entry(lambda: perturbations.perturbed(inner.factory(), parsed, name), spec)
     # Not kept in the registry, so that they are never listed and a changed module is read again.
     if name.startswith(gymnasium.PREFIX):
         imported_module(name)  # Gymnasium imports the module of an id module:Env-v0
@@ -86,9 +92,13 @@ MODULE_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
 
 
 def imported_module(name: str) -> str | None:
-    """The module that building `name` imports by name: an import path's, or that of a Gymnasium id
-    `module:Env-v0` (Gymnasium imports it); None for a registered name. UsageError for a module
-    name that is not absolute (relative, or a file path), which is never imported."""
+    """The module that building `name` imports by name: an import path's, that of a Gymnasium id
+    `module:Env-v0` (Gymnasium imports it), or an MJX robot's randomiser (`?randomize=module:fn`);
+    None for a registered name. UsageError for a module name that is not absolute (relative, or a
+    file path), which is never imported."""
+    name = name.partition(perturbations.SEPARATOR)[0]  # the ranges of a perturbed name import nothing
+    if name.startswith(robot_tasks.MJX_PREFIX):
+        name = str(robot_tasks.parse_options(name, name.partition("?")[2]).get("randomize", ""))
     if name in _REGISTRY or ":" not in name:
         return None
     module_name = name.removeprefix(gymnasium.PREFIX).partition(":")[0]

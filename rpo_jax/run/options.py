@@ -186,18 +186,26 @@ def refuse_train_flags(argv: Sequence[str]) -> None:
             raise UsageError(f"{flag(name)} is rpo_jax.train's: an experiment's jobs choose algorithm and sweeps, in one process")
 
 
+# `envs.perturbations.SEPARATOR`, read here without importing JAX (--help stays quick).
+PERTURBATION_SEPARATOR = "+"
+
+
 @dataclasses.dataclass(frozen=True)
 class RobotSettings:
-    """Settings of Playground's robots (robot/ and mjx-robot/ tasks), which become options of the
-    environment's name (`robot/Go1JoystickFlatTerrain?noise_level=0`), so that the run records them."""
+    """Settings of the task that become part of the environment's name, so that the run records
+    them: Playground's robots' options (`robot/Go1JoystickFlatTerrain?noise_level=0`), and physics
+    drawn per episode on tasks inside the program (`cartpole+mass=0.8:1.2`, `envs.perturbations`)."""
 
     obs_noise: float | None = None
     """robots: the scale of the observation noise, 0 for none (envpool's noise_level); None: the task's own"""
     push: Literal["task", "on", "off"] = "task"
     """robots: random pushes on or off, where the task has them; task: the task's own"""
+    randomize: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="AXIS=LOW:HIGH")] = ()
+    """tasks inside the program: draw AXIS per episode from [LOW, HIGH] (repeat for more); axes as evaluate --perturb's"""
 
     def env_name(self, env: str) -> str:
         """`env` with these settings among its options; UsageError where they cannot apply."""
+        env += "".join(PERTURBATION_SEPARATOR + axis for axis in self.randomize)
         push = {"on": True, "off": False}.get(self.push)
         given = {robot_tasks.NOISE_LEVEL: self.obs_noise, robot_tasks.PUSH_ENABLE: push}
         options = {name: value for name, value in given.items() if value is not None}
