@@ -26,11 +26,13 @@ from typing import Any, Literal, Sequence
 import tyro
 
 from rpo_jax import envs
-from rpo_jax.config import PRESETS, SWEEPABLE, Config
+from rpo_jax.config import PRESETS, Config
 from rpo_jax.envs import dmc_tasks, robot_tasks
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.report import compose, results
-from rpo_jax.run.directory import EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, env_directory, hold_lock
+from rpo_jax.run.directory import (
+    EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LOCK_FILE, RunDir, check_directory_names, env_directory, hold_lock,
+)  # fmt: skip
 from rpo_jax.run.files import write_json
 from rpo_jax.run.options import (
     PLACEMENT_FIELDS, JobConfig, JobProcesses, JobRunSpec, Pbt, PresetName, Processes, RobotSettings, RunSpec, Tracking,
@@ -64,6 +66,7 @@ TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
 # The robots train with Playground's config for each (its PPO results', `robot_tasks.preset_of`),
 # on either path and whatever the options of their names; a legged robot and an arm.
 SUITES["robots"] = ("robot/Go1JoystickFlatTerrain", "robot/PandaPickCube")
+SUITES["robustness"] = ("cartpole",)
 
 # The paper's budget: 8M environment steps per run, 10 seeds per variant.
 PAPER_TIMESTEPS, PAPER_SEEDS = PRESETS["paper"].total_timesteps, 10
@@ -83,6 +86,7 @@ class Job:
     sweep: tuple[str, tuple[float, ...]] | None = None
     population: int = 0
     pbt_fields: str = ""
+    randomized: bool = False  # trains on its task's `robustness.TRAINING_RANGES`, drawn per episode
 
     def sweep_specs(self) -> list[str]:
         """The sweep as --sweep gives it: NAME=V1,V2,..."""
@@ -98,7 +102,8 @@ class Job:
         return f"{self.name} {self.sweep[0]}={hparams[self.sweep[0]]:g}"
 
 
-POPULATION_FIELDS = ("population", "pbt_fields")
+# A job's fields recorded where set: experiments recorded before them continue.
+OPTIONAL_JOB_FIELDS = ("population", "pbt_fields", "randomized")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +134,17 @@ EXPERIMENTS: dict[str, Experiment] = {
     ),
     # The same on Playground's robots (populations of 4: a Go1 simulator takes 58 MB on the host).
     "robots": Experiment((*FIXED_ALPHAS, Job("pbt", "rpo", population=4, pbt_fields=Pbt.pbt_fields)), "robots", 1_000_000),
+    # Each of those trained on nominal physics and on physics drawn per episode, then evaluated on
+    # one grid of changed physics per task (`report.robustness`), at rl_games' Cartpole budget.
+    "robustness": Experiment(
+        tuple(
+            dataclasses.replace(job, name=job.name + suffix, randomized=bool(suffix))
+            for suffix in ("", "-randomized")
+            for job in (*FIXED_ALPHAS, Job("pbt", "rpo", population=4, pbt_fields=Pbt.pbt_fields))
+        ),
+        "robustness",
+        819_200,
+    ),
     # Time limits bootstrapped from the final observation (rpo_jax's default) against treated as
     # terminal states (the paper's CleanRL code).
     "truncation": Experiment(per_algorithm("truncation", ("bootstrap", "terminate")), "gym"),
@@ -233,8 +249,7 @@ def resolve(args: ExperimentArgs) -> dict:
         **({"eval_every": args.run.eval_every, "eval_episodes": args.run.eval_episodes} if args.run.eval_every else {}),
         **{name: values[name] for name in RECORDED_WHERE_GIVEN if values[name] != defaults[name]},
         "config": config_overrides(args, jobs),
-        # A job's population fields where it has one: experiments recorded before them continue.
-        "jobs": [{k: v for k, v in dataclasses.asdict(job).items() if v or k not in POPULATION_FIELDS} for job in jobs],
+        "jobs": [{k: v for k, v in dataclasses.asdict(job).items() if v or k not in OPTIONAL_JOB_FIELDS} for job in jobs],
     }
     return json.loads(json.dumps(definition))  # as experiment.json will hold it: lists, not tuples
 
@@ -249,18 +264,6 @@ def upgraded(saved: dict) -> dict:
     given = {name: saved.pop(name, None) for name in ("num_envs", "num_steps")}
     saved["num_seeds"], saved["total_timesteps"] = saved.pop("seeds"), saved.pop("timesteps")
     return {**saved, "config": {name: value for name, value in given.items() if value is not None}}
-
-
-def check_directory_names(env_names: Sequence[str]) -> None:
-    """Refuses two environments whose runs would share a directory (cola:b_c and cola_b:c are
-    both cola_b_c): the second would find the first's runs and report them as its own."""
-    seen: dict[str, str] = {}
-    for name in env_names:
-        other = seen.setdefault(env_directory(name), name)
-        if other != name:
-            raise UsageError(
-                f"--envs {other} and {name} would share the directory {EXPERIMENT_RUNS_DIR}/{env_directory(name)}; run them apart"
-            )
 
 
 def run_dir(out: Path, env: str, job: Job) -> Path:
@@ -326,7 +329,7 @@ def check_jobs(definition: dict, jobs: Sequence[Job]) -> dict[tuple[str, str], l
         for job in jobs:
             _, config = job_config(definition, env, job)
             try:
-                grids[env, job.name] = plan.check_new(env, config, job_run(definition, job, None))
+                grids[env, job.name] = plan.check_new(trained_env(env, job), config, job_run(definition, job, None))
             except UsageError as error:
                 raise UsageError(f"{env} {job.name}: {error}") from None
     return grids
@@ -342,7 +345,16 @@ def job_plan(
     preset, config = job_config(definition, env, job)
     processes = Processes(**{name: definition[name] for name in PLACEMENT_FIELDS if name in definition})
     population = Pbt(pbt=True, population=job.population, pbt_fields=job.pbt_fields) if job.population else None
-    return plan.new_plan(env, config, job_run(definition, job, directory), processes, preset, grid, population)
+    return plan.new_plan(trained_env(env, job), config, job_run(definition, job, directory), processes, preset, grid, population)
+
+
+def trained_env(env: str, job: Job) -> str:
+    """The task `job` trains: `env`, or for a randomised job `env` with its ranges drawn per episode."""
+    from rpo_jax.robustness import TRAINING_RANGES
+
+    if job.randomized and env not in TRAINING_RANGES:
+        raise UsageError(f"{job.name} trains on ranges of changed physics, which are set for {', '.join(TRAINING_RANGES)} only")
+    return env + "".join("+" + spec for spec in TRAINING_RANGES[env]) if job.randomized else env
 
 
 def run_experiment(args: ExperimentArgs) -> Path:
@@ -354,6 +366,13 @@ def run_experiment(args: ExperimentArgs) -> Path:
     with hold_lock(out):
         prepare_out(out, definition)
         run_jobs(args, out, definition, jobs, grids)
+        if args.name == "robustness":  # each finished run on its task's grid, for the report's section
+            from rpo_jax.report.robustness import evaluate_runs
+            from rpo_jax.robustness import EVALUATION_GRIDS
+
+            for env, job in ((env, job) for env in definition["envs"] for job in jobs):
+                if RunDir(run_dir(out, env, job)).is_finished():
+                    evaluate_runs(run_dir(out, env, job), env, EVALUATION_GRIDS[env], episodes=16)
         compose.build(out, [out])
     return out
 
@@ -384,7 +403,9 @@ def run_jobs(
         group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
         summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)
         print(progress_line(prefix, job, summary), flush=True)
-        results.write_results(out, collect_rows(out, definition, jobs))
+        rows = [row for env in definition["envs"] for job in jobs
+                for row in results.run_rows(definition["experiment"], env, job.variant, run_dir(out, env, job))]  # fmt: skip
+        results.write_results(out, rows)
 
 
 def progress_line(prefix: str, job: Job, summary: dict) -> str:
@@ -396,32 +417,6 @@ def progress_line(prefix: str, job: Job, summary: dict) -> str:
 def returned(mean: float | None) -> str:
     """A final return as the progress line shows it; None: no episode ended in the runs."""
     return "n/a (no episode ended)" if mean is None else f"{mean:.2f}"
-
-
-def collect_rows(out: Path, definition: dict, jobs: Sequence[Job]) -> list[dict]:
-    """results.csv's rows from every finished run, in the experiment's order."""
-    rows = []
-    for env in definition["envs"]:
-        for job in jobs:
-            directory = RunDir(run_dir(out, env, job))
-            if not directory.is_finished():
-                continue
-            config = directory.read_config()
-            for metrics in directory.read_metrics():
-                rows.append(
-                    {
-                        "experiment": definition["experiment"],
-                        "env": env,
-                        "variant": job.variant(metrics),
-                        "algo": config["algo"],
-                        "dist": config["config"]["dist"],
-                        **{name: metrics[name] for name in SWEEPABLE},
-                        "seed": metrics["seed"],
-                        **{name: metrics[name] for name in results.METRIC_COLUMNS},
-                        **({results.EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
-                    }
-                )
-    return rows
 
 
 def main(argv: Sequence[str] | None = None) -> int:

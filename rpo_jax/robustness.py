@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -118,17 +119,38 @@ class Result:
                 "kept_share": self.kept_share}  # fmt: skip
 
 
-def evaluate_under(env: envs.Env, policy: ActFn, grid: Grid, episodes: int, key: jax.Array) -> Result:
-    """The deterministic policy's undiscounted returns on `episodes` episodes at every point of
-    `grid` and at the nominal physics, in one compiled program (`env` simulated inside it)."""
+def grid_returns(env: envs.Env, grid: Grid, episodes: int, key: jax.Array) -> Callable[[ActFn], jax.Array]:
+    """Jittable: a policy's returns [points + 1, episodes] at every point of `grid` (in
+    `Grid.points`' order) and, last, at the nominal physics; vmappable over policies."""
     if isinstance(env, (envs.HostEnv, envs.BatchedHostEnv)):
         raise UsageError(f"{env.spec.name} steps on the host; --perturb applies to tasks simulated inside the program")
     check_axes(env, grid.axes)
     nominal = np.asarray([[NOMINAL[axis] for axis in grid.axes]], np.float32)
+    points = jnp.asarray(np.concatenate([grid.points(), nominal]))
 
-    def returns_at(point: jax.Array) -> jax.Array:
-        perturbed = Perturbed(env, {axis: (point[i], point[i]) for i, axis in enumerate(grid.axes)})
-        return first_episode_returns(perturbed, policy, episodes, key, deterministic=True)[0]
+    def returns(policy: ActFn) -> jax.Array:
+        def at(point: jax.Array) -> jax.Array:
+            perturbed = Perturbed(env, {axis: (point[i], point[i]) for i, axis in enumerate(grid.axes)})
+            return first_episode_returns(perturbed, policy, episodes, key, deterministic=True)[0]
 
-    returns = np.asarray(jax.jit(jax.vmap(returns_at))(jnp.asarray(np.concatenate([grid.points(), nominal]))))
-    return Result(grid, returns[:-1].reshape(*grid.shape, episodes), returns[-1])
+        return jax.vmap(at)(points)
+
+    return returns
+
+
+def result_of(grid: Grid, returns: np.ndarray) -> Result:
+    """A `Result` from `grid_returns`' array [points + 1, episodes]."""
+    return Result(grid, returns[:-1].reshape(*grid.shape, -1), returns[-1])
+
+
+def evaluate_under(env: envs.Env, policy: ActFn, grid: Grid, episodes: int, key: jax.Array) -> Result:
+    """The deterministic policy's undiscounted returns on `episodes` episodes at every point of
+    `grid` and at the nominal physics, in one compiled program (`env` simulated inside it)."""
+    returns = grid_returns(env, grid, episodes, key)
+    return result_of(grid, np.asarray(jax.jit(lambda: returns(policy))()))
+
+
+# The robustness experiment's tasks: the ranges its randomised variants train on, drawn per
+# episode, and the grid every variant is evaluated on, wider than the ranges, to see past them.
+TRAINING_RANGES = {"cartpole": ("mass=0.5:2", "gain=0.6:1.4")}
+EVALUATION_GRIDS = {"cartpole": ("mass=0.25:3:6", "gain=0.3:1.7:5")}

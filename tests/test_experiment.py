@@ -82,9 +82,9 @@ def test_kept_fraction_is_the_last_window_over_the_best():
 def test_every_experiment_builds_valid_training_plans(tmp_path):
     expected_variants = {
         "ppo-vs-rpo": 2, "entropy-reg": 7, "distributions": 6, "data-aug": 4, "alpha-ablation": 10, "long-horizon": 2,
-        "truncation": 4, "pbt-alpha": 4, "robots": 4,
+        "truncation": 4, "pbt-alpha": 4, "robots": 4, "robustness": 8,
     }  # fmt: skip
-    budgets = {"long-horizon": 100_000_000, "robots": 1_000_000}
+    budgets = {"long-horizon": 100_000_000, "robots": 1_000_000, "robustness": 819_200}
     for name, spec in experiment.EXPERIMENTS.items():
         definition = experiment.resolve(experiment.parse_args([name, "--envs", "cartpole"]))
         assert definition["total_timesteps"] == budgets.get(name, 8_000_000)
@@ -94,6 +94,7 @@ def test_every_experiment_builds_valid_training_plans(tmp_path):
             assert plan.num_seeds == (job.population or 1) * 10 and plan.config.num_envs == 512  # the isaacgym preset
             assert plan.populations == (10 if job.population else 1)  # a population per seed
             assert plan.config.algo == job.algo
+            assert plan.env == ("cartpole+mass=0.5:2+gain=0.6:1.4" if job.randomized else "cartpole")
             grid = plan_module.parse_sweeps(plan.sweep, plan.config)
             variants += [job.variant(run["hparams"]) for run in plan_module.describe_runs(plan, grid)]
         assert len(set(variants)) == expected_variants[name], (name, variants)

@@ -185,3 +185,36 @@ def test_a_randomised_run_records_its_ranges_resumes_exactly_and_evaluates(tmp_p
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
     assert (unfinished / PARAMS_FILE).read_bytes() == (out / PARAMS_FILE).read_bytes()
     assert evaluate.main([str(unfinished), "--episodes", "2"]) == 0
+
+
+def test_the_report_section_tabulates_each_variant_and_its_chance_over_ppo(tmp_path):
+    from rpo_jax.report import robustness as section
+
+    rng = np.random.default_rng(0)
+    for variant, level, members in (("ppo", 100.0, 0), ("rpo-0.5", 120.0, 0), ("pbt", 110.0, 2)):
+        directory = tmp_path / "exp" / "runs" / "cartpole" / variant
+        directory.mkdir(parents=True)
+        runs = 3 * (members or 1)
+        # [runs, 2 x 2 points + nominal, 4 episodes]: the worst point at half the nominal level.
+        returns = level + rng.normal(size=(runs, 5, 4))
+        returns[:, 0] *= 0.5
+        record = {"env": "cartpole", "axes": ["mass", "gain"], "values": [[0.5, 2.0], [1.0, 1.5]], "episodes": 4,
+                  "returns": returns.tolist()}  # fmt: skip
+        (directory / section.GRID_FILE).write_text(json.dumps(record))
+        plan = {"pbt": {"pbt": True, "population": members}} if members else {}
+        (directory / "config.json").write_text(json.dumps({"plan": plan}))
+    lines = section.section(tmp_path / "out", [tmp_path / "exp"])
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in lines if line.startswith("| ") and "---" not in line}
+    assert rows["ppo"][1] == "3" and rows["pbt"][1] == "3"  # a population is one seed: its best member
+    assert rows["rpo-0.5"][-1].startswith("1.00") and rows["ppo"][-1].startswith("0.50")
+    assert rows["ppo"][5].startswith("0.75")  # 3 of 4 points keep 80% of the nominal return
+    assert (tmp_path / "out" / "figures" / "robustness-cartpole-rpo-0.5.png").exists()
+    assert section.section(tmp_path / "out", [tmp_path]) == []  # no grid records: no section
+
+
+def test_a_randomised_job_on_a_task_without_ranges_is_refused():
+    from rpo_jax import experiment
+
+    job = next(job for job in experiment.EXPERIMENTS["robustness"].jobs if job.randomized)
+    with pytest.raises(UsageError, match="ranges of changed physics, which are set for cartpole only"):
+        experiment.trained_env("gym/Pendulum-v1", job)

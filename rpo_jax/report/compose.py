@@ -32,7 +32,7 @@ import numpy as np
 import tyro
 
 from rpo_jax.errors import UsageError, command_failures
-from rpo_jax.report import figures, populations, reference, statistics, tables
+from rpo_jax.report import figures, populations, reference, robustness, statistics, tables
 from rpo_jax.run.directory import (
     CHECKPOINT_DIR, CONFIG_FILE, EXPERIMENT_FILE, EXPERIMENT_RUNS_DIR, LINEAGE_FILE, LOCK_FILE, METRICS_FILE,
     PARAMS_FILE, RESULTS_FILE, SUMMARY_FILE, TENSORBOARD_DIR, VIDEOS_DIR, WANDB_DIR, RunDir, env_directory,
@@ -285,6 +285,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         *populations.section(members, jobs),
         *(f"![{name}]({name})" for name in written),
         "",
+        *robustness.section(out, directories),
     ]
     write_text(out / REPORT_FILE, "\n".join(lines))
     return out / REPORT_FILE

@@ -6,11 +6,11 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import SWEEPABLE
-from rpo_jax.run.directory import RESULTS_FILE
+from rpo_jax.run.directory import RESULTS_FILE, RunDir
 from rpo_jax.run.files import write_text
 
 ID_COLUMNS = ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
@@ -33,6 +33,29 @@ def write_results(out: Path, rows: Iterable[dict]) -> None:
     writer.writeheader()
     writer.writerows(rows)
     write_text(out / RESULTS_FILE, buffer.getvalue())
+
+
+def run_rows(experiment: str, env: str, variant: Callable[[dict], str], directory: Path) -> list[dict]:
+    """results.csv's rows of one run directory of an experiment, one per logged update and run
+    (`variant(metrics)` labels them); none while the run is unfinished."""
+    run = RunDir(directory)
+    if not run.is_finished():
+        return []
+    config = run.read_config()
+    return [
+        {
+            "experiment": experiment,
+            "env": env,
+            "variant": variant(metrics),
+            "algo": config["algo"],
+            "dist": config["config"]["dist"],
+            **{name: metrics[name] for name in SWEEPABLE},
+            "seed": metrics["seed"],
+            **{name: metrics[name] for name in METRIC_COLUMNS},
+            **({EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
+        }  # fmt: skip
+        for metrics in run.read_metrics()
+    ]
 
 
 def read_results(directory: Path) -> list[dict]:

@@ -27,7 +27,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Iterator, Sequence
 
 from rpo_jax.errors import UsageError
 from rpo_jax.run.files import write_bytes, write_json
@@ -362,3 +362,15 @@ def check_new_file(flag: str, path: Path) -> None:
         raise UsageError(f"{flag} {path}: the directory {directory} does not exist")
     if not os.access(directory, os.W_OK | os.X_OK):
         raise UsageError(f"{flag} {path}: the directory {directory} is not writable (read-only file system or no permission)")
+
+
+def check_directory_names(env_names: Sequence[str]) -> None:
+    """Refuses two environments whose runs would share a directory (cola:b_c and cola_b:c are
+    both cola_b_c): the second would find the first's runs and report them as its own."""
+    seen: dict[str, str] = {}
+    for name in env_names:
+        other = seen.setdefault(env_directory(name), name)
+        if other != name:
+            raise UsageError(
+                f"--envs {other} and {name} would share the directory {EXPERIMENT_RUNS_DIR}/{env_directory(name)}; run them apart"
+            )
