@@ -53,13 +53,23 @@ def test_sigterm_during_training_exits_143_with_the_resume_hint_and_resumes(tmp_
     assert train.main(["--resume", str(out), "--quiet"]) == 0 and RunDir(out).is_finished()
 
 
-@pytest.mark.parametrize("hook, at, held", [("record_returns", 5, 4), ("track_chunk", 5, 5), ("track_chunk", 10, 10)])
-def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, tmp_path, capsys, monkeypatch, hook, at, held):
+EVERY_TEN = str(NUM_ENVS * NUM_STEPS * 10)
+
+
+@pytest.mark.parametrize(
+    "hook, at, held, every",
+    [("record_returns", 5, 4, EVERY_TEN), ("track_chunk", 5, 5, EVERY_TEN), ("track_chunk", 10, 10, EVERY_TEN),
+     ("track_chunk", 5, 5, "0")],
+)  # fmt: skip
+def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(
+    finished, tmp_path, capsys, monkeypatch, hook, at, held, every
+):  # fmt: skip
     """SIGTERM in the fifth chunk's host work, the next checkpoint due at update 10: once its rows
     are written but before the chunk is held (`record_returns`), the stop checkpoints update 4 and
     the resume cuts the fifth chunk's rows; while its tracking waits for the queued sixth
     (`track_chunk`), update 5; likewise in the tenth, whose scheduled checkpoint was still to be
-    written, update 10. Each time the resume ends as the uninterrupted run, bit for bit."""
+    written, update 10; and with scheduled checkpoints off (the default below 5M steps), the stop
+    still writes its own. Each time the resume ends as the uninterrupted run, bit for bit."""
     original, out, stopped = getattr(chunks, hook), tmp_path / "run", []
 
     def stopped_in_the_fifth(*args, **kwargs):
@@ -68,7 +78,7 @@ def test_a_stop_checkpoints_the_last_logged_chunk_and_resumes_exactly(finished, 
         return original(*args, **kwargs)
 
     monkeypatch.setattr(chunks, hook, stopped_in_the_fifth)
-    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS * 10)]) == 143
+    assert train.main([*TINY_FLAGS, "--out", str(out), "--checkpoint-every", every]) == 143
     resumes = f"(resumes from update {held} of {UPDATES})"
     assert one_line(capsys) == f"terminated {resumes}; continue with: python -m rpo_jax.train --resume {out}"
     checkpointer = Checkpointer(RunDir(out).checkpoints)

@@ -196,7 +196,8 @@ class RunCheckpoints:
     """A run's checkpoints between chunks, each with its record: the scheduled ones (`save`) and,
     on Ctrl-C or SIGTERM (`checkpoint_on_stop`), one of the last chunk whose rows were logged
     (`hold`), so that a stop loses only the chunk under way rather than every update since the
-    last checkpoint. `checkpointer` None: checkpoints are off."""
+    last checkpoint, whatever the interval. `checkpointer` None: scheduled checkpoints are off (a
+    stop still writes its one)."""
 
     def __init__(
         self, plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
@@ -246,13 +247,18 @@ class RunCheckpoints:
 @contextlib.contextmanager
 def checkpoint_on_stop(checkpoints: RunCheckpoints) -> Iterator[RunCheckpoints]:
     """On Ctrl-C or SIGTERM in the block, writes the chunk `checkpoints` holds before the stop goes
-    on. One process only: several would all have to take part in the write."""
+    on, with scheduled checkpoints off too (--checkpoint-every 0, the default of runs under 5M
+    steps): a stop never loses the chunks logged. One process only: several would all have to
+    take part in the write."""
     try:
         yield checkpoints
     except KeyboardInterrupt:
-        if checkpoints.checkpointer and checkpoints.logged and jax.process_count() == 1:
+        if checkpoints.logged and jax.process_count() == 1:
             with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
+                if checkpoints.checkpointer is None:
+                    checkpoints.checkpointer = Checkpointer(checkpoints.plan.run_dir.checkpoints)
                 checkpoints.write(*checkpoints.logged)
+                checkpoints.checkpointer.close()
         raise
 
 
