@@ -62,3 +62,28 @@ class EndlessSimulators:
 def endless_host_env():
     """Two faults: its episodes outlive the spec's 5 steps, and its backend is "jax" though it is host-side."""
     return envs.HostEnv(envs.EnvSpec("endless", 2, 1, (-1.0,), (1.0,), 5, "jax"), EndlessSimulators)
+
+
+def _split(*keys):
+    """A point-mass task of 6 observations whose spec names the parts `keys`."""
+    from point_mass import PointMass
+
+    env = PointMass()
+    env.spec = envs.EnvSpec("split", 6, 1, (-1.0,), (1.0,), 10, "jax", keys, keys[0][0], keys[-1][0])
+    return env
+
+
+def negative_part():
+    return _split(("state", -2), ("privileged_state", 8))
+
+
+def fractional_parts():
+    return _split(("state", 3.5), ("privileged_state", 2.5))
+
+
+def empty_part():
+    return _split(("state", 0), ("privileged_state", 6))
+
+
+def repeated_part():
+    return _split(("state", 3), ("state", 3))

@@ -120,6 +120,33 @@ def test_the_robots_specs_are_envpools():
         assert spec.config.ctrl_dt == pytest.approx(facts.control_dt), task
 
 
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ("noise_level=-1", "option noise_level must be >= 0 (the task's is 1.0), got -1"),
+        ("kp=-1e6", "option kp must be > 0 (the task's is 35.0), got -1000000.0"),
+        ("ctrl_dt=0", "option ctrl_dt must be > 0"),
+        ("noise_level=0,noise_level=5", "option noise_level is given twice"),
+        ("noise_level=abc", "option noise_level is a number (the task's is 1.0), got 'abc'"),
+        ("noise_level=", "option noise_level is a number (the task's is 1.0), got ''"),
+        ("noise_level=nan", "option noise_level must be a finite number"),
+    ],
+)
+def test_a_robot_options_value_is_checked_against_its_type_and_range(options, message):
+    with pytest.raises(UsageError) as error:
+        robots.parse_name(f"robot/Go1JoystickFlatTerrain?{options}")
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_robot_boolean_option_takes_true_or_false():
+    with pytest.raises(UsageError, match="option push_enable is true or false .*, got 2"):
+        robots.parse_name("robot/G1JoystickFlatTerrain?push_enable=2")
+    with pytest.raises(UsageError, match="option push_enable is true or false .*, got 'yes'"):
+        robots.parse_name("robot/G1JoystickFlatTerrain?push_enable=yes")
+    options = robots.parse_name("robot/G1JoystickFlatTerrain?push_enable=false,ctrl_dt=0.04")[1]
+    assert options == {"push_enable": False, "ctrl_dt": 0.04}
+
+
 def test_the_command_lines_robot_settings_become_options_of_the_name():
     go1 = "robot/Go1JoystickFlatTerrain?kp=30"
     assert RobotSettings().env_name(go1) == go1

@@ -102,6 +102,24 @@ def test_an_environment_that_cannot_be_built_is_one_line_and_exit_2(env, message
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    "factory, message",
+    [
+        ("negative_part", "observation part 'state' must have a positive integer size, got -2"),
+        ("fractional_parts", "observation part 'state' must have a positive integer size, got 3.5"),
+        ("empty_part", "observation part 'state' must have a positive integer size, got 0"),
+        ("repeated_part", "observation_keys name a part twice: ['state', 'state']"),
+    ],
+)
+def test_observation_parts_that_cannot_be_read_are_refused_by_train_and_check(factory, message, tmp_path, capsys):
+    assert train.main(["--env", f"broken_envs:{factory}", "--quiet", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "run").exists()
+    assert envs_main(["--check", f"broken_envs:{factory}"]) != 0
+    assert message in capsys.readouterr().err
+
+
 def test_a_gymnasium_task_trains_on_the_host_with_finite_metrics(tmp_path):
     out = tmp_path / "cheetah"
     assert train.main(["--env", "gymnasium/HalfCheetah-v5", *TINY, "--out", str(out)]) == 0

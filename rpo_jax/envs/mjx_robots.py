@@ -25,6 +25,7 @@ many minutes (the Go1's did not finish in 10), so the CPU trains the `robot/` po
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import io
 from pathlib import Path
@@ -117,6 +118,8 @@ def config_overrides(task: str, name: str, options: dict[str, Any]) -> dict[str,
         path = next((path for path in CONFIG_PATHS[option] if has(path)), None)
         if path is None:
             raise UsageError(f"env {name!r}: {task} on MJX has no {option.split('_')[0]} setting in Playground's config")
+        default = functools.reduce(lambda node, part: node[part], path.split("."), config)
+        robot_tasks.check_option(name, option, options[option], default)
         overrides[path] = options[option]
     return overrides
 

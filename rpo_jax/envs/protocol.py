@@ -53,6 +53,14 @@ class EnvSpec:
     critic_obs_key: str = ""
 
     def __post_init__(self) -> None:
+        names = [name for name, _ in self.observation_keys]
+        for name, size in self.observation_keys:
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"{self.name}: an observation part is named by a non-empty string, got {name!r}")
+            if isinstance(size, bool) or not isinstance(size, int) or size <= 0:
+                raise ValueError(f"{self.name}: observation part {name!r} must have a positive integer size, got {size!r}")
+        if len(set(names)) < len(names):
+            raise ValueError(f"{self.name}: observation_keys name a part twice: {names}")
         if self.observation_keys and sum(size for _, size in self.observation_keys) != self.observation_size:
             raise ValueError(f"{self.name}: observation_keys' sizes must add up to observation_size")
         for key in (self.policy_obs_key, self.critic_obs_key):

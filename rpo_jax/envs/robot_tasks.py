@@ -6,6 +6,7 @@ and the options of their names, which both paths read (`robots`: envpool's ports
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import TYPE_CHECKING, Any
 
 from rpo_jax.errors import UsageError
@@ -91,14 +92,46 @@ def spec(task: str, name: str, backend: str) -> EnvSpec:
 
 def parse_options(name: str, query: str) -> dict[str, Any]:
     """The options of a robot's name, the part after '?': 'noise_level=0,push_enable=false' ->
-    {'noise_level': 0, 'push_enable': False} (numbers, true/false, or text)."""
+    {'noise_level': 0, 'push_enable': False} (numbers, true/false, or text); a key given twice is
+    refused."""
     options: dict[str, Any] = {}
     for part in filter(None, query.split(",")):
         key, equals, value = part.partition("=")
         if not equals or not key.strip():
             raise UsageError(f"env {name!r}: an option is KEY=VALUE, got {part!r}")
+        if key.strip() in options:
+            raise UsageError(f"env {name!r}: option {key.strip()} is given twice")
         options[key.strip()] = _value(value.strip())
     return options
+
+
+# Settings that must be positive (a step's length, a gain, a history), those that must not be
+# negative (noise, damping, pushes' timing and size, thresholds), and probabilities, by name.
+POSITIVE = ("ctrl_dt", "sim_dt", "kp", "action_scale", "history_len")
+NOT_NEGATIVE = ("noise", "kd", "push_interval", "push_magnitude", "max_", "success_threshold", "box_init_range")
+PROBABILITIES = ("_prob", "ema_alpha")
+
+
+def check_option(name: str, key: str, value: Any, default: Any) -> None:
+    """Refuses, in one line naming the option, a value of another type than the setting's
+    (`default`: the task's own value) or outside its range."""
+    kind = "true or false" if isinstance(default, bool) else "an integer" if isinstance(default, int) else "a number"
+    numeric = not isinstance(default, (bool, str))
+    integral = isinstance(default, int) and not isinstance(default, bool)
+    if isinstance(default, bool) != isinstance(value, bool) or (
+        numeric and (isinstance(value, str) or (integral and isinstance(value, float)))
+    ):
+        raise UsageError(f"env {name!r}: option {key} is {kind} (the task's is {default!r}), got {value!r}")
+    if isinstance(value, bool) or isinstance(value, str):
+        return
+    if not math.isfinite(value):
+        raise UsageError(f"env {name!r}: option {key} must be a finite number, got {value!r}")
+    if key.endswith(POSITIVE) and not value > 0:
+        raise UsageError(f"env {name!r}: option {key} must be > 0 (the task's is {default!r}), got {value!r}")
+    if key.startswith(NOT_NEGATIVE) and value < 0:
+        raise UsageError(f"env {name!r}: option {key} must be >= 0 (the task's is {default!r}), got {value!r}")
+    if key.endswith(PROBABILITIES) and not 0 <= value <= 1:
+        raise UsageError(f"env {name!r}: option {key} is a probability in [0, 1], got {value!r}")
 
 
 def with_options(name: str, options: dict[str, Any]) -> str:
@@ -113,6 +146,8 @@ def with_options(name: str, options: dict[str, Any]) -> str:
 def _value(text: str) -> Any:
     if text.lower() in ("true", "false"):
         return text.lower() == "true"
+    if not text:
+        return text
     for kind in (int, float):
         try:
             return kind(text)

@@ -49,6 +49,8 @@ def parse_name(name: str) -> tuple[str, dict[str, Any]]:
         unknown = sorted(set(options) - set(settings))
         if unknown:
             raise UsageError(f"env {name!r}: {task} has no setting {', '.join(unknown)}; its settings: {', '.join(settings)}")
+        for key, value in options.items():
+            robot_tasks.check_option(name, key, value, settings[key])
     return task, options
 
 
@@ -59,10 +61,11 @@ POOL_FIELDS = {
 }  # fmt: skip
 
 
-def _settings(task: str) -> list[str]:
-    """The task's own settings (envpool's config fields for it, less the pool's)."""
+def _settings(task: str) -> dict[str, Any]:
+    """The task's own settings (envpool's config fields for it, less the pool's) and their values."""
     envpool = _import_envpool(PREFIX + task)
-    return [field for field in envpool.make_spec(f"{task}-v1").config._fields if field not in POOL_FIELDS]
+    config = envpool.make_spec(f"{task}-v1").config
+    return {field: getattr(config, field) for field in config._fields if field not in POOL_FIELDS}
 
 
 def _import_envpool(name: str) -> Any:
