@@ -38,19 +38,45 @@ from rpo_jax.run.directory import CONFIG_FILE, METRICS_FILE, PARAMS_FILE, SUMMAR
 
 __all__ = ["finished", "test_envs", "unfinished"]  # point_mass_runs' fixtures: pytest finds them here by these names
 ROOT = Path(__file__).resolve().parents[1]
+LATEST = UPDATES - 1  # the latest checkpoint of `unfinished`
+
+
+def warnings_of_a_fallback(capsys, out) -> str:
+    """The damaged checkpoint's line, after checking the second: the rows logged after the one
+    resumed from (update LATEST - 1: those of LATEST and UPDATES, the last two) are cut, said."""
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 2, lines
+    assert lines[1] == (
+        f"warning: --resume {out}: the rows of updates {LATEST} to {UPDATES} were logged after the checkpoint it "
+        "resumes from; they are cut and trained again"
+    )
+    return lines[0]
 
 
 def test_resume_falls_back_to_the_previous_checkpoint_and_ends_as_uninterrupted(finished, unfinished, capsys):
     damage(unfinished / "checkpoints" / str(UPDATES - 1), "truncated")
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
-    warning = one_line(capsys)
+    warning = warnings_of_a_fallback(capsys, unfinished)
     assert warning.startswith(f"warning: --resume {unfinished}: checkpoint at update {UPDATES - 1} is damaged"), warning
     assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
     assert (unfinished / METRICS_FILE).read_text().count("\n") == (finished / METRICS_FILE).read_text().count("\n")
 
 
-LATEST = UPDATES - 1  # the latest checkpoint of `unfinished`
 EDITED = "its record differs from the one saved"
+
+
+@pytest.mark.parametrize("deleted", ["the latest", "every one"])
+def test_a_deleted_checkpoint_is_reported_with_the_rows_trained_again(finished, unfinished, capsys, deleted):
+    import shutil
+
+    shutil.rmtree(unfinished / "checkpoints" / str(LATEST) if deleted == "the latest" else unfinished / "checkpoints")
+    assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
+    first = LATEST if deleted == "the latest" else 1
+    assert one_line(capsys) == (
+        f"warning: --resume {unfinished}: the rows of updates {first} to {UPDATES} were logged after the checkpoint it "
+        "resumes from; they are cut and trained again"
+    )
+    assert (unfinished / PARAMS_FILE).read_bytes() == (finished / PARAMS_FILE).read_bytes()
 
 
 @pytest.mark.parametrize(
@@ -71,7 +97,7 @@ EDITED = "its record differs from the one saved"
 def test_resume_passes_over_a_checkpoint_unlike_the_one_saved(finished, unfinished, capsys, spoil, problem):
     spoil(unfinished / "checkpoints" / str(LATEST))
     assert train.main(["--resume", str(unfinished), "--quiet"]) == 0
-    warning = one_line(capsys)
+    warning = warnings_of_a_fallback(capsys, unfinished)
     assert warning.startswith(f"warning: --resume {unfinished}: checkpoint at update {LATEST} is damaged ("), warning
     assert problem in warning and warning.endswith("; falling back to the previous checkpoint"), warning
     assert without_timing(unfinished) == without_timing(finished)

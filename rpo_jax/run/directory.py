@@ -26,6 +26,7 @@ import fcntl
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 from typing import IO, Any, Iterator, Sequence
 
@@ -218,11 +219,17 @@ class RunDir:
         `metrics_problem` verified) and returns the rows kept; with `cut` False (a process that
         does not write the run) only reads them. A file shorter than that (or missing) lost
         rows the checkpoint counts on: refused, never padded."""
-        kept = self._metrics_at_least(size)[:size]
+        data = self._metrics_at_least(size)
+        dropped = {json.loads(line).get("update") for line in data[size:].splitlines() if line.strip()}
+        if cut and dropped:
+            # A stop checkpoints the chunk it logged last: rows after a checkpoint mean a process killed
+            # outright, or a later checkpoint gone (deleted, or damaged and passed over).
+            print(f"warning: --resume {self.path}: the rows of updates {min(dropped)} to {max(dropped)} were logged "
+                  "after the checkpoint it resumes from; they are cut and trained again", file=sys.stderr)  # fmt: skip
         if cut:
             with open(self.path / METRICS_FILE, "a+b") as metrics:
                 metrics.truncate(size)
-        return [json.loads(line) for line in kept.splitlines()]
+        return [json.loads(line) for line in data[:size].splitlines()]
 
     def append_lineage(self, rows: list[dict[str, Any]]) -> None:
         with open(self.path / LINEAGE_FILE, "ab", buffering=0) as lineage:
