@@ -137,7 +137,8 @@ def run_command(args: EvaluateArgs) -> None:
     seeds = [entry["seed"] if args.seed is None else args.seed for entry in saved["runs"]]
     deterministic = not args.stochastic
     # Training's program over all the runs, as in training: another rounds differently (module docstring).
-    returns, means, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
+    with chunks.environment_failure(saved["env"]):  # a host simulator's refusal, as one line
+        returns, means, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
     chosen = [run] if args.trained.run is not None else list(range(len(saved["runs"])))
     for index in chosen:
         spread = with_spread(f"{means[index]:.2f}", f" ± {sample_std(returns[index]):.2f}", episodes)

@@ -266,3 +266,19 @@ def test_an_mjx_robot_trains(tmp_path):
     assert train.main([*flags, "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["total_timesteps"] == 64 and summary["final_return_n"] >= 0
+
+
+def test_simulators_that_would_not_fit_in_memory_are_refused_before_any_is_built(tmp_path, capsys, monkeypatch):
+    from rpo_jax import evaluate, train
+    from rpo_jax.envs import envpool_pools
+
+    monkeypatch.setattr(envpool_pools, "available_megabytes", lambda: 500.0)  # 7 Go1 simulators (58.1 MB) fit in 90%
+    out = tmp_path / "run"
+    argv = ["--env", "robot/Go1JoystickFlatTerrain", "--num-steps", "16", "--num-minibatches", "2", "--quiet"]
+    assert train.main([*argv, "--num-envs", "16", "--total-timesteps", "256", "--out", str(out)]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "16 simulators need about 0.9 GB (58.1 MB each) and 0.5 GB is available: at most 7 fit" in line, line
+    assert "\n" not in line and not out.exists()
+    assert train.main([*argv, "--num-envs", "4", "--total-timesteps", "64", "--out", str(out)]) == 0
+    assert evaluate.main([str(out), "--episodes", "100"]) == 2
+    assert "100 simulators need about 5.8 GB" in capsys.readouterr().err

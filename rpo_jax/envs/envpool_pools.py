@@ -11,6 +11,8 @@ from typing import Any, Mapping, Sequence
 import jax
 import numpy as np
 
+from rpo_jax.errors import UsageError
+
 
 def usable_cores() -> int:
     """The cores this process may run on (fewer than the machine's under `taskset` or a cgroup's
@@ -41,11 +43,38 @@ def pool_affinity(threads: int) -> int:
     return 0 if whole_machine and len(jax.devices("cpu")) == 1 else -1
 
 
+def available_megabytes() -> float | None:
+    """The memory the system can give new processes without swapping (Linux's MemAvailable), in
+    MB; None where it cannot say."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            fields = dict(line.split(":", 1) for line in meminfo)
+        return int(fields["MemAvailable"].split()[0]) / 1000
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def check_memory(task_id: str, num_envs: int, megabytes_each: float) -> None:
+    """Refuses, in one line with the largest count that fits, `num_envs` simulators of
+    `megabytes_each` (measured) that the available memory would not hold, before any is built:
+    the kernel would kill the process without a word."""
+    available = available_megabytes()
+    if not megabytes_each or available is None or num_envs * megabytes_each <= 0.9 * available:
+        return
+    fits = int(0.9 * available // megabytes_each)
+    raise UsageError(
+        f"{task_id}: {num_envs:,} simulators need about {num_envs * megabytes_each / 1000:.1f} GB "
+        f"({megabytes_each:g} MB each) and {available / 1000:.1f} GB is available: at most {fits:,} fit; "
+        "give fewer environments (--num-envs, --num-seeds, --eval-episodes)"
+    )
+
+
 class EnvpoolSimulators:
     """One envpool pool of `num_envs` copies of a task (envpool's id `task_id`, e.g.
     'WalkerWalk-v1'), auto-reset within the step, its observation the concatenation of the
     arrays `obs_keys` names, in that order. `options`: the task's own settings (envpool's config
-    fields, e.g. a robot's `noise_level`).
+    fields, e.g. a robot's `noise_level`). `megabytes_each`: one simulator's resident memory,
+    where measured, weighed against the machine's before the pool is built (`check_memory`).
 
     Steps and resets go through envpool's own `_send`, `_reset` and `_recv`, the calls under its
     public `send`, `reset` and `recv`, which rebuild the action's list and the result's named
@@ -59,9 +88,11 @@ class EnvpoolSimulators:
 
     def __init__(
         self, task_id: str, action_size: int, obs_keys: Sequence[str], num_envs: int, seed: int,
-        options: Mapping[str, Any] | None = None,
+        options: Mapping[str, Any] | None = None, megabytes_each: float = 0.0,
     ) -> None:  # fmt: skip
         import envpool
+
+        check_memory(task_id, num_envs, megabytes_each)
 
         self.env_ids = np.arange(num_envs)
         threads = pool_threads(num_envs)

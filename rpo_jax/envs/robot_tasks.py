@@ -31,31 +31,32 @@ class RobotTask:
     episode_steps: int
     control_dt: float  # seconds a step
     preset: str  # rpo_jax's preset of Playground's PPO config for it (`rpo_jax.config.PRESETS`)
+    megabytes: float  # one envpool simulator's resident memory (benchmarks/lab/robot_memory.py)
 
 
 TASKS = {
     # Locomotion: quadrupeds and humanoids following a velocity command, getting up, standing.
-    "Go1JoystickFlatTerrain": RobotTask(12, 48, 123, 1000, 0.02, "go1-joystick"),
-    "Go1JoystickRoughTerrain": RobotTask(12, 48, 123, 1000, 0.02, "go1-joystick"),
-    "Go1Getup": RobotTask(12, 42, 91, 300, 0.02, "go1-getup"),
-    "Go1Handstand": RobotTask(12, 45, 94, 500, 0.02, "go1-handstand"),
-    "Go1Footstand": RobotTask(12, 45, 94, 500, 0.02, "go1-handstand"),
-    "BerkeleyHumanoidJoystickFlatTerrain": RobotTask(12, 52, 114, 1000, 0.02, "humanoid-joystick"),
-    "BerkeleyHumanoidJoystickRoughTerrain": RobotTask(12, 52, 114, 1000, 0.02, "humanoid-joystick"),
-    "G1JoystickFlatTerrain": RobotTask(29, 103, 216, 1000, 0.02, "humanoid-joystick"),
-    "G1JoystickRoughTerrain": RobotTask(29, 103, 216, 1000, 0.02, "humanoid-joystick"),
-    "T1JoystickFlatTerrain": RobotTask(23, 85, 180, 1000, 0.02, "humanoid-joystick"),
-    "T1JoystickRoughTerrain": RobotTask(23, 85, 180, 1000, 0.02, "humanoid-joystick"),
-    "SpotFlatTerrainJoystick": RobotTask(12, 81, 167, 1000, 0.02, "locomotion"),
-    "ApolloJoystickFlatTerrain": RobotTask(32, 112, 224, 1000, 0.02, "humanoid-joystick"),
+    "Go1JoystickFlatTerrain": RobotTask(12, 48, 123, 1000, 0.02, "go1-joystick", 58.1),
+    "Go1JoystickRoughTerrain": RobotTask(12, 48, 123, 1000, 0.02, "go1-joystick", 46.6),
+    "Go1Getup": RobotTask(12, 42, 91, 300, 0.02, "go1-getup", 55.9),
+    "Go1Handstand": RobotTask(12, 45, 94, 500, 0.02, "go1-handstand", 52.8),
+    "Go1Footstand": RobotTask(12, 45, 94, 500, 0.02, "go1-handstand", 54.8),
+    "BerkeleyHumanoidJoystickFlatTerrain": RobotTask(12, 52, 114, 1000, 0.02, "humanoid-joystick", 122.8),
+    "BerkeleyHumanoidJoystickRoughTerrain": RobotTask(12, 52, 114, 1000, 0.02, "humanoid-joystick", 109.2),
+    "G1JoystickFlatTerrain": RobotTask(29, 103, 216, 1000, 0.02, "humanoid-joystick", 92.1),
+    "G1JoystickRoughTerrain": RobotTask(29, 103, 216, 1000, 0.02, "humanoid-joystick", 81.7),
+    "T1JoystickFlatTerrain": RobotTask(23, 85, 180, 1000, 0.02, "humanoid-joystick", 44.7),
+    "T1JoystickRoughTerrain": RobotTask(23, 85, 180, 1000, 0.02, "humanoid-joystick", 36.2),
+    "SpotFlatTerrainJoystick": RobotTask(12, 81, 167, 1000, 0.02, "locomotion", 52.6),
+    "ApolloJoystickFlatTerrain": RobotTask(32, 112, 224, 1000, 0.02, "humanoid-joystick", 262.3),
     # Manipulation: a LEAP hand turning a cube, a Franka Panda arm picking one up, ALOHA's arms.
-    "LeapCubeReorient": RobotTask(16, 57, 128, 1000, 0.05, "leap-cube-reorient"),
-    "LeapCubeRotateZAxis": RobotTask(16, 32, 105, 500, 0.05, "leap-cube-rotate-z"),
-    "PandaPickCube": RobotTask(8, 66, 0, 150, 0.02, "panda-pick-cube"),
-    "PandaPickCubeOrientation": RobotTask(8, 66, 0, 150, 0.02, "panda-pick-cube"),
-    "PandaPickCubeCartesian": RobotTask(3, 70, 0, 200, 0.05, "panda-pick-cube-cartesian"),
-    "PandaOpenCabinet": RobotTask(8, 55, 0, 150, 0.02, "panda-open-cabinet"),
-    "AlohaHandOver": RobotTask(14, 83, 0, 250, 0.02, "aloha-hand-over"),
+    "LeapCubeReorient": RobotTask(16, 57, 128, 1000, 0.05, "leap-cube-reorient", 73.8),
+    "LeapCubeRotateZAxis": RobotTask(16, 32, 105, 500, 0.05, "leap-cube-rotate-z", 74.0),
+    "PandaPickCube": RobotTask(8, 66, 0, 150, 0.02, "panda-pick-cube", 46.7),
+    "PandaPickCubeOrientation": RobotTask(8, 66, 0, 150, 0.02, "panda-pick-cube", 45.7),
+    "PandaPickCubeCartesian": RobotTask(3, 70, 0, 200, 0.05, "panda-pick-cube-cartesian", 44.7),
+    "PandaOpenCabinet": RobotTask(8, 55, 0, 150, 0.02, "panda-open-cabinet", 45.0),
+    "AlohaHandOver": RobotTask(14, 83, 0, 250, 0.02, "aloha-hand-over", 68.1),
 }  # fmt: skip
 
 

@@ -86,5 +86,7 @@ def make(name: str) -> HostEnv:
     keys = ["state", "privileged_state"] if facts.privileged_size else ["state"]
     return HostEnv(
         spec(task, name),
-        lambda num_envs, seed: EnvpoolSimulators(f"{task}-v1", facts.action_size, keys, num_envs, seed, options),
+        lambda num_envs, seed: EnvpoolSimulators(
+            f"{task}-v1", facts.action_size, keys, num_envs, seed, options, megabytes_each=facts.megabytes
+        ),
     )

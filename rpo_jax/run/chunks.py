@@ -120,7 +120,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
     if plan.capture_video:
         video.check_video(env, "--capture-video")
     if not is_primary():
-        with _interruptible(plan), _out_of_memory_refused(), _environment_failure(plan.env):
+        with _interruptible(plan), _out_of_memory_refused(), environment_failure(plan.env):
             return train_locked(plan, env, grid, (), None)
     existed = plan.out.exists()
     with hold_lock(plan.out):
@@ -129,7 +129,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
         if plan.resuming and plan.run_dir.is_finished():
             raise UsageError(f"--resume {plan.out}: that run has already finished (summary.json exists)")
         try:
-            with _interruptible(plan), _out_of_memory_refused(), _environment_failure(plan.env):
+            with _interruptible(plan), _out_of_memory_refused(), environment_failure(plan.env):
                 return train_locked(plan, env, grid, sinks, progress)
         except (Diverged, UsageError, OSError) as error:
             resumable = plan.resuming or plan.run_dir.has_checkpoint()
@@ -235,7 +235,7 @@ def _out_of_memory_refused() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _environment_failure(name: str) -> Iterator[None]:
+def environment_failure(name: str) -> Iterator[None]:
     """An exception raised by a host-side simulator inside the compiled program (JAX reports it
     with the callback's traceback) as the one-line error of the environment that raised it."""
     try:
@@ -244,7 +244,8 @@ def _environment_failure(name: str) -> Iterator[None]:
         lines = [line.strip() for line in str(error).splitlines() if line.strip()]
         if not lines or "callback" not in lines[0].lower():
             raise
-        raise UsageError(f"--env {name}: the environment raised {lines[-1]}") from None
+        said = lines[-1].removeprefix(f"{UsageError.__name__}: ")  # a refusal of ours says what is wrong itself
+        raise UsageError(f"--env {name}: {said if said != lines[-1] else 'the environment raised ' + said}") from None
 
 
 def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], placement: devices.Placement) -> Compiled:
