@@ -403,9 +403,14 @@ def run_jobs(
         group = f"{args.tracking.wandb_group or args.name}/{env}/{job.name}"
         summary = train_with_display(run_plan, dataclasses.replace(args.tracking, wandb_group=group), args.processes)
         print(progress_line(prefix, job, summary), flush=True)
-        rows = [row for env in definition["envs"] for job in jobs
-                for row in results.run_rows(definition["experiment"], env, job.variant, run_dir(out, env, job))]  # fmt: skip
-        results.write_results(out, rows)
+        write_results(out, definition, jobs)
+    write_results(out, definition, jobs)  # also where every run had finished: results.csv whole again
+
+
+def write_results(out: Path, definition: dict, jobs: Sequence[Job]) -> None:
+    rows = [row for env in definition["envs"] for job in jobs
+            for row in results.run_rows(definition["experiment"], env, job.variant, run_dir(out, env, job))]  # fmt: skip
+    results.write_results(out, rows)
 
 
 def progress_line(prefix: str, job: Job, summary: dict) -> str:

@@ -229,6 +229,18 @@ def test_report_of_one_seed_gives_values_without_a_spread(uninterrupted, tmp_pat
     assert "±" in two_seeds[0] and "±" in two_seeds[1]
 
 
+def test_a_seed_whose_last_rows_were_lost_is_refused_and_the_command_writes_them_again(uninterrupted, tmp_path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(uninterrupted, copy)
+    rows = results.read_results(copy)
+    last = max(row["update"] for row in rows)
+    results.write_results(copy, [row for row in rows if not (row["seed"] == 2 and row["update"] == last)])
+    assert compose.main([str(copy), "--out", str(tmp_path / "report")]) == 2
+    assert "seed 2's rows end at" in capsys.readouterr().err
+    assert experiment.main(["ppo-vs-rpo", *TINY, "--out", str(copy)]) == 0  # every run finished: results.csv whole again
+    assert (copy / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
+
+
 def test_experiment_refuses_bad_input(uninterrupted, tmp_path, capsys):
     cases = [
         (["ppo-vs-rpo", "--envs", "nowhere"], "unknown env 'nowhere'"),

@@ -282,3 +282,17 @@ def test_simulators_that_would_not_fit_in_memory_are_refused_before_any_is_built
     assert train.main([*argv, "--num-envs", "4", "--total-timesteps", "64", "--out", str(out)]) == 0
     assert evaluate.main([str(out), "--episodes", "100"]) == 2
     assert "100 simulators need about 5.8 GB" in capsys.readouterr().err
+
+
+def test_a_robot_preset_on_a_task_it_was_not_made_for_is_said(tmp_path, capsys):
+    from rpo_jax import train
+    from rpo_jax.envs import robot_tasks
+
+    assert robot_tasks.preset_mismatch("go1-joystick", "mjx-robot/Go1JoystickRoughTerrain?randomize=false") is None
+    assert robot_tasks.preset_mismatch("panda-pick-cube-cpu", "robot/PandaPickCube") is None
+    assert robot_tasks.preset_mismatch("isaacgym", "cartpole") is None  # not a robot's preset
+    said = robot_tasks.preset_mismatch("panda-pick-cube", "robot/Go1JoystickFlatTerrain")
+    assert said == "--preset panda-pick-cube is Playground's config for PandaPickCube, PandaPickCubeOrientation, not " \
+        "robot/Go1JoystickFlatTerrain"  # fmt: skip
+    assert train.main(["--env", "cartpole", "--preset", "go1-joystick", "--total-timesteps", "1", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("warning: --preset go1-joystick is Playground's config for Go1Joystick")

@@ -76,6 +76,17 @@ def preset_of(name: str) -> str | None:
     return TASKS[task].preset if task else None
 
 
+def preset_mismatch(preset: str, name: str) -> str | None:
+    """Why `preset`, where it is one of the robots' (or its CPU-sized variant), was not made for
+    what `name` trains; None where it was, or where it is no robot's preset."""
+    base = preset.removesuffix("-cpu")
+    made_for = [task for task, facts in TASKS.items() if facts.preset == base]
+    task = task_of(name)
+    if not made_for or task in made_for:
+        return None
+    return f"--preset {preset} is Playground's config for {', '.join(made_for)}, not {name}"
+
+
 def spec(task: str, name: str, backend: str) -> EnvSpec:
     """The spec of `task` under `name`: the policy reads `state`, the critic `privileged_state`
     (a flat task's one observation both)."""

@@ -127,6 +127,11 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
     (mean, sample std, 95% interval), the seed count, steps and late-training fractions."""
     summary = {}
     for key, seeds in group_runs(rows).items():
+        ends = {seed: run[-1]["env_steps"] for seed, run in seeds.items()}
+        if len(set(ends.values())) > 1:  # rows cut from a seed's end would shift its final return in silence
+            short = min(ends, key=ends.get)
+            raise UsageError(f"{' '.join(key)}: seed {short:g}'s rows end at {ends[short]:,.0f} steps, another's at "
+                             f"{max(ends.values()):,.0f}: results.csv lost rows; run the experiment's command again")  # fmt: skip
         finals = np.array([_final_return(run) for run in seeds.values()])
         entropies = np.array([tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()])
         length = min(len(run) for run in seeds.values())
