@@ -11,11 +11,10 @@ the actor reading `state` and the critic `privileged_state`, observation normali
 0.97, entropy 0.01, clip 0.3, a constant learning rate of 3e-4, gradient norm 1. Both evaluate
 the deterministic policy on 16 fresh episodes 5 times during training (Brax also before it).
 
-What stays different, each a trainer's design: Brax's policy is Playground's tanh-squashed Gaussian
-with a softplus scale, rpo_jax's a Gaussian with a free log-scale, starting at e^-2 in the preset,
-whose actions are clipped to [-1, 1]; Brax draws each environment's physics once a run, rpo_jax
-once an episode; rpo_jax clips normalised observations at 10 and bootstraps truncated episodes
-from their last state's value.
+Both train Playground's policy, a tanh-squashed Gaussian with a softplus scale (rpo_jax's
+`--dist tanh-normal`, which the preset sets). What stays different, each a trainer's design: Brax
+draws each environment's physics once a run, rpo_jax once an episode; rpo_jax clips normalised
+observations at 10 and bootstraps truncated episodes from their last state's value.
 
 Each (trainer, seed) trains in a fresh process, trainers alternating; a finished pair is kept in
 OUT/results.json and skipped when the command runs again. Training steps/s leave evaluation out
@@ -23,9 +22,9 @@ on both sides (Brax: the steps of the evaluation intervals after the first over 
 `training/walltime`; rpo_jax: summary.json's). Brax's own `training/sps` is recorded beside it:
 with num_resets_per_eval > 1 it counts that many epochs' steps over one epoch's time.
 OUT/curves.png draws the evaluation returns. `--ablations brax-gaussian` trains Brax with a Gaussian
-policy with a free log-scale starting at 0 (scale 1, not squashed) as well; `rpo_jax-scale-1`
-trains rpo_jax with its policy starting at scale 1 (`--init-log-scale 0`, as the preset trained
-before it set the scale).
+policy with a free log-scale starting at 0 (scale 1, not squashed) as well; `rpo_jax-gaussian`
+trains rpo_jax's Gaussian with a free log-scale starting at e^-2, its actions clipped (`--dist
+gaussian --init-log-scale -2`, the preset before it trained Brax's policy).
 """
 
 from __future__ import annotations
@@ -48,8 +47,8 @@ TASK = "Go1JoystickFlatTerrain"
 ENV = "mjx-robot/" + TASK
 TRAINERS = ("brax", "rpo_jax")
 # The ablations that tell the policies' part in a difference of the curves from the trainers': Brax
-# with a Gaussian policy starting at scale 1 (no squashing), and rpo_jax starting at scale 1.
-ABLATIONS = ("brax-gaussian", "rpo_jax-scale-1")
+# with a Gaussian policy starting at scale 1 (no squashing), and rpo_jax's Gaussian starting at e^-2.
+ABLATIONS = ("brax-gaussian", "rpo_jax-gaussian")
 NUM_STEPS, MINIBATCHES, EVALS, EVAL_EPISODES = 20, 4, 5, 16
 
 
@@ -113,7 +112,7 @@ def measure_rpo_jax(num_envs: int, timesteps: int, seed: int, flags: tuple[str, 
 
 MEASURES = {
     "brax": measure_brax, "rpo_jax": measure_rpo_jax, "brax-gaussian": functools.partial(measure_brax, gaussian=True),
-    "rpo_jax-scale-1": functools.partial(measure_rpo_jax, flags=("--init-log-scale", "0")),
+    "rpo_jax-gaussian": functools.partial(measure_rpo_jax, flags=("--dist", "gaussian", "--init-log-scale", "-2")),
 }  # fmt: skip
 
 
