@@ -43,7 +43,7 @@ FENCE = re.compile(r"^\s*```")
 
 # The word budget (`wc -w`), whole pages. The site: every hand-written page of docs/ (the generated
 # command-line tables, reports and benchmarks pages are not counted).
-BUDGET = {"site": 14_450, "page": 2_500, "README.md": 1_300}  # site: 13,000 before the Robots page, 14,000 before Robustness
+BUDGET = {"site": 14_500, "page": 2_500, "README.md": 1_300}  # site: 13,000 before the Robots page, 14,000 before Robustness
 # Code lines longer than this are cut off by the code block's width on the site.
 CODE_WIDTH = 90
 
