@@ -1,7 +1,8 @@
 """Counts of non-finite numbers in an update, for the runner's guard against training on them,
 and the running statistics that training reads. Apart from `rpo_jax.ppo`, which returns them
-beside each update's metrics (`Trainer.scan_diagnosed_updates`), since the update may run as two
-programs (`rpo_jax.parallel.devices`' epochs placement), each counting its own half."""
+beside each update's metrics (`Trainer.update(state, diagnose=True)`, `ppo.diagnosed_learn`),
+since the update may run as two programs (`rpo_jax.parallel.devices`' epochs placement), each
+counting its own half."""
 
 from __future__ import annotations
 

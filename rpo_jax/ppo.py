@@ -96,8 +96,9 @@ class Trainer:
 
     `init(key, hparams=None)` builds the state; `update(state)` is one update; `train(key,
     hparams=None)` the whole run (what `make_train` returns); `scan_updates(state, n)` does n
-    updates in one `lax.scan`. A long run calls one compiled chunk of updates repeatedly (all
-    chunks the same length, so it compiles once) to report progress between chunks."""
+    updates in one `lax.scan`. The command line calls one compiled chunk of `scan_updates(state,
+    n, diagnose=True)` repeatedly (all chunks the same length, so it compiles once) to report
+    progress between chunks."""
 
     config: Config
     env: envs.NormalizeObservation  # the wrapped, batched environment that training steps
@@ -121,29 +122,20 @@ class Trainer:
             envs.RunningMeanStd.zeros(()), zero, zero,
         )  # fmt: skip
 
-    def update(self, state: TrainState) -> tuple[TrainState, Metrics]:
-        """One update (Algorithm 1's outer loop body): collect a rollout, then learn from it."""
-        return learn(self, collect(self, state))
+    def update(self, state: TrainState, diagnose: bool = False) -> tuple[TrainState, Any]:
+        """One update (Algorithm 1's outer loop body): collect a rollout, then learn from it. The
+        metrics, or with `diagnose` (the command line's) the metrics and the update's `Diagnostics`."""
+        return (diagnosed_learn if diagnose else learn)(self, collect(self, state))
 
     def train(self, key: jax.Array, hparams: Hyperparams | None = None) -> tuple[TrainState, Metrics]:
         """The whole run, `config.num_updates` updates from `init(key, hparams)`: the final state
         and each update's metrics. Jittable and vmappable, as `make_train`'s function."""
         return self.scan_updates(self.init(key, hparams), self.config.num_updates)
 
-    def scan_updates(self, state: TrainState, num_updates: int) -> tuple[TrainState, Metrics]:
-        return jax.lax.scan(lambda s, _: self.update(s), state, None, length=num_updates)
-
-    def scan_diagnosed_updates(
-        self, state: TrainState, num_updates: int
-    ) -> tuple[TrainState, tuple[Metrics, diagnostics.Diagnostics]]:
-        """`scan_updates` with each update's `Diagnostics` next to its metrics."""
-
-        def step(state, _):
-            collected = collect(self, state)
-            new_state, metrics = learn(self, collected)
-            return new_state, (metrics, diagnostics.Diagnostics.of(collected.rollout_counts, new_state, self.config))
-
-        return jax.lax.scan(step, state, None, length=num_updates)
+    def scan_updates(self, state: TrainState, num_updates: int, diagnose: bool = False) -> tuple[TrainState, Any]:
+        """`num_updates` updates in one `lax.scan`: the state after them and each update's outputs
+        (`update`'s, with a leading [num_updates] axis). The command line runs it a chunk at a time."""
+        return jax.lax.scan(lambda s, _: self.update(s, diagnose), state, None, length=num_updates)
 
     def restart_episodes(self, state: TrainState) -> TrainState:
         """`state` with a fresh episode in every environment; parameters, optimiser, counters
@@ -215,6 +207,12 @@ def collect(trainer: Trainer, state: TrainState) -> Collected:
     episodes = finished_episodes(traj, state, trainer.axis_name)
     state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
     return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj, config))
+
+
+def diagnosed_learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, tuple[Metrics, diagnostics.Diagnostics]]:
+    """`learn`, with the update's `Diagnostics` (the rollout's and the new state's non-finite counts) beside its metrics."""
+    state, metrics = learn(trainer, collected)
+    return state, (metrics, diagnostics.Diagnostics.of(collected.rollout_counts, state, trainer.config))
 
 
 def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:

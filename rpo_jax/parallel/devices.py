@@ -50,7 +50,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from rpo_jax import diagnostics, envs, ppo
+from rpo_jax import envs, ppo
 from rpo_jax.config import Config
 from rpo_jax.errors import UsageError
 from rpo_jax.parallel import cluster
@@ -136,7 +136,7 @@ class Placement:
             return self._split_chunk(trainer, chunk, abstract_state)
 
         def chunk_updates(state: ppo.TrainState) -> tuple[ppo.TrainState, Any]:
-            return trainer.scan_diagnosed_updates(state, chunk)
+            return trainer.scan_updates(state, chunk, diagnose=True)
 
         program = self._per_device(map_runs(chunk_updates))
         placed = abstract_state if self.mesh is None else self._placed_abstract(abstract_state)
@@ -175,8 +175,7 @@ class Placement:
             return ppo.collect(trainer, state)
 
         def learn(collected: ppo.Collected) -> tuple[ppo.TrainState, Any]:
-            state, metrics = ppo.learn(trainer, collected)
-            return state, (metrics, diagnostics.Diagnostics.of(collected.rollout_counts, state, trainer.config))
+            return ppo.diagnosed_learn(trainer, collected)
 
         group_state = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct((size, *leaf.shape[1:]), leaf.dtype), abstract_state)
         collect_program = jax.jit(map_runs(collect)).lower(group_state).compile()
