@@ -62,7 +62,12 @@ RECORDED = {
         "c7111c5e512b681f3fe168904071b57cf4b510331171d430b892f73d344acb57",
         "72e5392ffb1cb550e844b1a69b1980a4493e43d82576bb9e593abedc3bdfa134",
     ),
-    # the same machine and the suite's flags (no older emitters there), Python 3.13.0, jax/jaxlib 0.12.0.1,
+    # another AMD EPYC (2 cores, KVM; other CPU flags), the same flags and libraries: the same digests
+    "2ae154ecd0ac4f35": (
+        "c7111c5e512b681f3fe168904071b57cf4b510331171d430b892f73d344acb57",
+        "72e5392ffb1cb550e844b1a69b1980a4493e43d82576bb9e593abedc3bdfa134",
+    ),
+    # the first EPYC and the suite's flags (no older emitters there), Python 3.13.0, jax/jaxlib 0.12.0.1,
     # numpy 2.5.5, mujoco 4.0.1
     "b5b8246593a45653": (
         "6793879d4cbaa85addf3f1bca982405ae4ffad4b0e2367e75bd363e925016bd3",
