@@ -134,7 +134,8 @@ def ppo_loss(
     hparams: Hyperparams | None = None,
     axis_name: str | None = None,
 ) -> tuple[jax.Array, LossMetrics]:
-    """Clipped-surrogate PPO loss on one minibatch [B]; with rpo_alpha > 0, the RPO loss.
+    """Clipped-surrogate PPO loss on one minibatch [B]; for an algorithm that perturbs the policy's
+    location (`Algorithm.perturbs_location`: rpo), the RPO loss at `hparams.rpo_alpha`.
 
     The policy location is perturbed (RPO) before the log-probability and entropy of the
     stored actions are taken. With `augmentation='rad'` the policy and value see amplitude-
