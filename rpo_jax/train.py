@@ -129,7 +129,8 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
     from rpo_jax.run import chunks
     from rpo_jax.run.sinks import ProgressDisplay, TensorBoardSink
 
-    progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, tracking.quiet or not is_primary())
+    what = f"{plan.env}'s training program ({plan.num_seeds} run(s) x {plan.config.num_envs} environments)"
+    progress = ProgressDisplay(plan.config.num_updates * plan.config.batch_size, tracking.quiet or not is_primary(), what)
     # Off with several processes: with JAX 0.12.1 a program that process 0 reads from the cache and
     # the others compile (only process 0 writes it) get different run ids, whose collectives never meet.
     chunks.use_compile_cache(processes.cache_directory if jax.process_count() == 1 else None)

@@ -68,6 +68,13 @@ def test_eval_return_on_a_host_side_task_and_only_when_asked(point_mass_env, tmp
         same = next(r for r in rows if r["update"] == row["update"])
         assert {k: v for k, v in same.items() if k not in ("sps", "eval_return")} == {k: v for k, v in row.items() if k != "sps"}
     assert "eval_return_mean" not in json.loads((plain / "summary.json").read_text())
+    # A one-run report draws the evaluations where the run has them.
+    from rpo_jax.report import compose
+
+    assert compose.main([str(out), "--out", str(tmp_path / "report")]) == 0
+    assert "(figures/evaluation.png)" in (tmp_path / "report" / "report.md").read_text()
+    assert compose.main([str(plain), "--out", str(tmp_path / "plain-report")]) == 0
+    assert not (tmp_path / "plain-report" / "figures" / "evaluation.png").exists()
 
 
 @pytest.mark.slow  # 29 s of learning; test_training's RPO run stays

@@ -367,6 +367,10 @@ def build_run(run_dirs: Sequence[RunDir], out: Path, holder: Path | None = None)
         figures.curves(out / FIGURES_DIR / f"{name}.png", title, series, metrics, colours)
         for name, metrics in zip(("return-entropy", "losses"), panels)
     ]
+    evaluated = {label: [[row for row in run if EVAL_COLUMN in row] for run in runs] for label, runs in series.items()}
+    if all(run for runs in evaluated.values() for run in runs):  # --eval-every's deterministic evaluations
+        metric = ((EVAL_COLUMN, "evaluation return (deterministic policy)"),)
+        written.append(figures.curves(out / FIGURES_DIR / "evaluation.png", title, evaluated, metric, colours))
     written += populations.write_figures(members, jobs, out / FIGURES_DIR)
     finals = {label: _final_returns(runs) for label, runs in series.items()}
     lines = [

@@ -129,31 +129,32 @@ class ProgressDisplay:
     """A live line in a terminal; otherwise a printed line every tenth of the run. From its
     creation (before the environment is built and the program compiled) until the first chunk
     is done it shows "compiling" with the seconds elapsed: live, ticking, in a terminal; as a
-    line at the start and one with the compile time otherwise."""
+    line at the start and one with the compile time otherwise. `what`: the program it compiles."""
 
-    def __init__(self, total_steps: int, quiet: bool) -> None:
+    def __init__(self, total_steps: int, quiet: bool, what: str = "the training program") -> None:
         from rich.console import Console
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
         self.console = Console(stderr=True)
         self.quiet, self.total_steps, self.next_print = quiet, total_steps, 0.0
-        self.started, self.compiling = time.perf_counter(), True
+        self.started, self.compiling, self.what = time.perf_counter(), True, what
         self.live = None
         if not quiet and self.console.is_terminal:
             self.live = Progress(
                 TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=self.console
             )  # fmt: skip
-            self.task = self.live.add_task("compiling...", total=total_steps)
+            self.task = self.live.add_task(f"compiling {what}...", total=total_steps)
             self.live.start()  # refreshes on its own thread, so the elapsed time ticks while XLA compiles
         elif not quiet:
-            self.console.print("compiling...", highlight=False)
+            self.console.print(f"compiling {what}...", highlight=False)
 
     def __call__(self, steps: int, metrics: dict[str, float]) -> None:
         sps, episode_return, entropy = metrics["sps"], metrics["episode_return"], metrics["policy_entropy"]
         shown = "     n/a" if math.isnan(episode_return) else f"{episode_return:8.2f}"  # NaN: no episode has ended yet
         line = f"steps {steps:>11,}  sps {sps:>10,.0f}  return {shown}  entropy {entropy:7.3f}"
         if self.compiling and not self.quiet and not self.live:
-            self.console.print(f"compiled and first chunk done after {time.perf_counter() - self.started:.1f} s", highlight=False)
+            seconds = time.perf_counter() - self.started
+            self.console.print(f"compiled {self.what} and ran its first chunk in {seconds:.1f} s", highlight=False)
         self.compiling = False
         if self.live:
             self.live.update(self.task, completed=steps, description=line)
