@@ -74,6 +74,11 @@ def check_new_run(args: TrainArgs, given: set[str]) -> None:
         raise UsageError(f"{', '.join(map(flag, population_flags))}: population flags, which apply with --pbt only")
 
 
+# What a resumed run may change of its plan: how many episodes each evaluation takes (fewer where
+# they would not fit in memory), which trains nothing and compiles the same training program.
+RESUME_MAY_CHANGE = {"eval_episodes"}
+
+
 def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> None:
     """Flags given with --resume must agree with the run's own (`saved`: its plan's fields and
     its config); the others (where and how it trains and reports) may change."""
@@ -88,7 +93,7 @@ def check_resume(args: TrainArgs, given: set[str], saved: dict[str, Any]) -> Non
         )
     groups = (args.config, args.run, args.pbt, args.processes)
     values = {"env": args.env, "preset": args.preset, **{k: v for group in groups for k, v in vars(group).items()}}
-    for name in sorted(given & saved.keys()):
+    for name in sorted(given & saved.keys() - RESUME_MAY_CHANGE):
         value, saved_value = values[name], saved[name]
         if isinstance(value, (tuple, list)):
             value, saved_value = list(value), list(saved_value)
@@ -106,7 +111,8 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         # --num-seeds with --pbt counts populations; the plan counts their members.
         seeds = {"num_seeds": plan.populations} if plan.pbt else {}
         check_resume(args, given, {**plans.plan_record(plan), **population, **seeds, **dataclasses.asdict(plan.config)})
-        return dataclasses.replace(plan, allow_relayout=args.processes.allow_relayout)
+        lowered = {name: getattr(args.run, name) for name in RESUME_MAY_CHANGE & given}
+        return dataclasses.replace(plan, allow_relayout=args.processes.allow_relayout, **lowered)
     if args.processes.allow_relayout:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 from point_mass_runs import (
+    NUM_ENVS,
+    NUM_STEPS,
     TINY_FLAGS,
     TINY_FLAGS_ANY_ENV,
     UPDATES,
@@ -319,3 +321,18 @@ def test_allow_relayout_applies_to_a_resume_only(tmp_path, capsys):
     assert train.main([*TINY_FLAGS, "--allow-relayout", "--out", str(tmp_path / "run")]) == 2
     assert one_line(capsys) == "error: --allow-relayout applies to --resume only; a new run trains on the layout it is given"
     assert not (tmp_path / "run").exists()
+
+
+def test_a_resume_may_lower_the_evaluations_episodes_and_trains_the_same(tmp_path, capsys):
+    out, argv = tmp_path / "run", [*TINY_FLAGS, "--eval-every", str(NUM_ENVS * NUM_STEPS * 5), "--eval-episodes", "8"]
+    assert train.main([*argv, "--out", str(out), "--checkpoint-every", str(NUM_ENVS * NUM_STEPS * 10)]) == 0
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(out, unfinished)
+    (unfinished / SUMMARY_FILE).unlink()
+    (unfinished / PARAMS_FILE).unlink()
+    assert train.main(["--resume", str(unfinished), "--eval-episodes", "2", "--quiet"]) == 0
+    assert json.loads((unfinished / CONFIG_FILE).read_text())["plan"]["eval_episodes"] == 2
+    assert (unfinished / PARAMS_FILE).read_bytes() == (out / PARAMS_FILE).read_bytes()  # evaluations train nothing
+    (unfinished / SUMMARY_FILE).unlink()
+    assert train.main(["--resume", str(unfinished), "--eval-every", "256", "--quiet"]) == 2  # the run's own
+    assert "the run was made with --eval-every" in capsys.readouterr().err

@@ -33,7 +33,7 @@ from rpo_jax.parallel.devices import is_primary
 from rpo_jax.run import eval_program, population, video
 from rpo_jax.run.checkpoint import Checkpointer
 from rpo_jax.run.directory import RunDir, hold_lock, write_rows
-from rpo_jax.run.plan import RunPlan, config_record, describe_runs, run_label
+from rpo_jax.run.plan import PLAN_DEFAULTS, RunPlan, config_record, describe_runs, run_label
 from rpo_jax.run.records import (
     Clock, RunCheckpoints, check_layout, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows,
     progress_metrics, record_returns, restore, summarise,
@@ -163,10 +163,7 @@ def train_locked(
     placement = plan.placement
     primary = is_primary()
     if plan.resuming:
-        devices.check_resumable(run_dir.read_config(), placement, plan.out)
-        check_layout(run_dir.read_config(), placement, plan)
-        if primary and plan.allow_relayout:  # config.json describes the layout the run goes on with
-            run_dir.write_config({**run_dir.read_config(), **placement.describe()})
+        check_resumed(plan, placement, primary)
     elif primary:
         run_dir.write_config({**config_record(plan, runs, swept, env.spec), **placement.describe()})
     compiled = compile_runs(plan, env, runs, placement)
@@ -201,6 +198,19 @@ def train_locked(
     # Only now: a tracker that fails as it closes must not cost the run that trained.
     close_sinks(sinks, summary, plan.out)
     return {"out": str(plan.out), **summary}
+
+
+def check_resumed(plan: RunPlan, placement: devices.Placement, primary: bool) -> None:
+    """Refuses a resume on a placement the run cannot continue on; config.json then says the
+    layout it goes on with (--allow-relayout) and the evaluations' episodes (lowered on --resume)."""
+    run_dir = plan.run_dir
+    devices.check_resumable(run_dir.read_config(), placement, plan.out)
+    check_layout(run_dir.read_config(), placement, plan)
+    if primary and plan.allow_relayout:
+        run_dir.write_config({**run_dir.read_config(), **placement.describe()})
+    saved = run_dir.read_config()
+    if primary and {**PLAN_DEFAULTS, **saved["plan"]}["eval_episodes"] != plan.eval_episodes:
+        run_dir.write_config({**saved, "plan": {**saved["plan"], "eval_episodes": plan.eval_episodes}})
 
 
 def close_sinks(sinks: Sequence[Sink], summary: dict[str, Any], out: Path) -> None:
