@@ -232,7 +232,8 @@ def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
     used = []
     monkeypatch.setattr(chunks, "use_compile_cache", used.append)
     monkeypatch.setattr(chunks, "train", lambda plan, sinks, progress: {})
-    plan = types.SimpleNamespace(config=types.SimpleNamespace(num_updates=1, batch_size=1))
+    config = types.SimpleNamespace(num_updates=1, batch_size=1, num_envs=1)
+    plan = types.SimpleNamespace(env="cartpole", num_seeds=1, config=config)
     for count in (1, 2):
         monkeypatch.setattr(jax, "process_count", lambda count=count: count)
         train.train_with_display(plan, Tracking(quiet=True), Processes())
