@@ -26,7 +26,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from rpo_jax import envs, ppo
+from rpo_jax import envs, optimizer, ppo
 from rpo_jax.config import SWEEPABLE, check_applies
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, explored_fields
@@ -180,5 +180,5 @@ def step(state: ppo.TrainState, scores: jax.Array, keys: jax.Array, rule: Rule, 
     explored = jax.vmap(lambda own, own_moved, key: explore(own, own_moved, key, rule))(*by_population, split[:, 1])
     hparams = jax.tree.map(lambda new, old: jnp.concatenate([new.reshape(-1), old[members:]]), explored, copied.hparams)
     ratio = jnp.where(copied.hparams.lr > 0, hparams.lr / copied.hparams.lr, 1.0)
-    opt_state = ppo.set_learning_rate(copied.opt_state, copied.opt_state.hyperparams["learning_rate"] * ratio)
+    opt_state = optimizer.set_learning_rate(copied.opt_state, copied.opt_state.hyperparams["learning_rate"] * ratio)
     return copied.replace(hparams=hparams, opt_state=opt_state), donors

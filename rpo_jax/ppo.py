@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from rpo_jax import diagnostics, envs
+from rpo_jax import diagnostics, envs, optimizer
 from rpo_jax.acting import make_actor, wrap_for_training
 from rpo_jax.config import Config
 from rpo_jax.cpu_workarounds import shuffled_indices
@@ -116,7 +116,7 @@ class Trainer:
         params = {"actor": self.actor.init(actor_key, dummy_obs), "critic": self.critic.init(critic_key, dummy_obs)}
         env_state, ts = self.env.reset(device_key(env_key, self.axis_name))
         zero = jnp.zeros(())
-        opt_state = set_learning_rate(self.optimizer.init(params), hparams.lr)
+        opt_state = optimizer.set_learning_rate(self.optimizer.init(params), hparams.lr)
         return TrainState(
             params, opt_state, env_state, ts.obs, key, jnp.zeros((), jnp.int32), hparams,
             envs.RunningMeanStd.zeros(()), zero, zero,
@@ -166,7 +166,7 @@ def make_trainer(config: Config, env: envs.Env, axis_name: str | None = None, en
     config = config.validate()
     actor, critic = make_networks(config, env.spec)
     wrapped = wrap_for_training(env, config, env_shards, axis_name)
-    return Trainer(config, wrapped, actor, critic, make_optimizer(config), axis_name)
+    return Trainer(config, wrapped, actor, critic, optimizer.make_optimizer(config), axis_name)
 
 
 def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState, Metrics]]:
@@ -199,9 +199,7 @@ def collect(trainer: Trainer, state: TrainState) -> Collected:
     """The rollout under the current policy and its batch of advantages and returns."""
     config = trainer.config
     key, rollout_key, epochs_key = jax.random.split(state.key, 3)
-    opt_state = state.opt_state
-    if config.lr_schedule == "linear":
-        opt_state = set_learning_rate(opt_state, state.hparams.lr * (1.0 - state.update / config.num_updates))
+    opt_state = optimizer.annealed(config, state.opt_state, state.hparams.lr, state.update)
     env_state, obs, traj = rollout(trainer, state.params, state.env_state, state.obs, rollout_key)
     batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
     episodes = finished_episodes(traj, state, trainer.axis_name)
@@ -363,12 +361,7 @@ def gradient_step(
         grads, metrics = jax.lax.pmean((grads, metrics), axis_name)
     updates, opt_state = trainer.optimizer.update(grads, opt_state, params)
     params = optax.apply_updates(params, updates)
-    if config.lr_schedule == "adaptive":
-        lr = opt_state.hyperparams["learning_rate"]
-        lr = jnp.where(metrics.approx_kl > 2 * config.kl_target, jnp.maximum(lr / 1.5, 1e-6), lr)
-        lr = jnp.where(metrics.approx_kl < 0.5 * config.kl_target, jnp.minimum(lr * 1.5, 1e-2), lr)
-        opt_state = set_learning_rate(opt_state, lr)
-    return params, opt_state, metrics
+    return params, optimizer.adapted(config, opt_state, metrics.approx_kl), metrics
 
 
 # ---------------------------------------------------------------- the parts the trainer is built from
@@ -378,21 +371,6 @@ def make_networks(config: Config, spec: envs.EnvSpec) -> tuple[Actor, Critic]:
     """The trainer's networks, each reading its part of the environment's observation."""
     critic_sizes = tuple(config.critic_hidden_sizes or config.hidden_sizes)
     return make_actor(config, spec), Critic(critic_sizes, config.activation, spec.part(spec.critic_obs_key))
-
-
-def make_optimizer(config: Config) -> optax.GradientTransformation:
-    """Global-norm clipping (none where max_grad_norm is 0) then Adam, with the learning rate held
-    in the state so that the linear and adaptive schedules set it between steps."""
-
-    def chain(learning_rate):
-        clip = optax.clip_by_global_norm(config.max_grad_norm) if config.max_grad_norm else optax.identity()
-        return optax.chain(clip, optax.adam(learning_rate, eps=config.adam_eps))
-
-    return optax.inject_hyperparams(chain)(learning_rate=config.lr)
-
-
-def set_learning_rate(opt_state: Any, lr: jax.Array) -> Any:
-    return opt_state._replace(hyperparams={**opt_state.hyperparams, "learning_rate": lr})
 
 
 def device_key(key: jax.Array, axis_name: str | None) -> jax.Array:
