@@ -56,8 +56,7 @@ from typing import Any, Callable
 
 # JAX, Brax and the loop are imported where they are used, so that --help answers at once.
 
-TASK = "CartpoleBalance"
-ENV = "mjx-dmc/cartpole-balance"
+ENV = "mjx-dmc/cartpole-balance"  # the loop's Playground task (`purejaxrl_loop.playground_env`) in rpo_jax's registry
 NUM_STEPS, EPOCHS, MINIBATCHES, HIDDEN = 32, 4, 8, (64, 64)
 TRAINERS = ("brax", "rpo_jax", "rpo_jax-cli", "purejaxrl")
 # The training program each trainer compiles, by the name JAX's compile log gives it.
@@ -74,12 +73,6 @@ def rpo_config(num_envs: int, timesteps: int) -> Any:
         num_minibatches=MINIBATCHES, hidden_sizes=HIDDEN, activation="tanh", lr=3e-4, lr_schedule="constant",
         normalize_reward=False, ent_coef=0.0, clip_value_loss=False, adam_eps=1e-8,
     )  # fmt: skip
-
-
-def playground_env() -> Any:
-    from mujoco_playground import dm_control_suite
-
-    return dm_control_suite.load(TASK, config_overrides={"impl": "jax"})
 
 
 class CompileLog(logging.Handler):
@@ -167,6 +160,8 @@ def measure_brax(num_envs: int, timesteps: int) -> dict[str, float]:
     log = brax_compile_log()
     epochs: list[float] = []  # training/sps of each training epoch
 
+    from purejaxrl_loop import playground_env  # this folder's, on the path when run as a script
+
     network = functools.partial(
         networks.make_ppo_networks, policy_hidden_layer_sizes=HIDDEN, value_hidden_layer_sizes=HIDDEN,
         activation=linen.tanh, distribution_type="normal", noise_std_type="log", init_noise_std=1.0,
@@ -209,7 +204,7 @@ def measure_rpo_jax(num_envs: int, timesteps: int) -> dict[str, float]:
 def measure_purejaxrl(num_envs: int, timesteps: int) -> dict[str, float]:
     import purejaxrl_loop  # this folder's, on the path when run as a script
 
-    loop = purejaxrl_loop.make_loop(num_envs, timesteps, playground_env)
+    loop = purejaxrl_loop.make_loop(num_envs, timesteps, purejaxrl_loop.playground_env)
     return measure_compiled(PROGRAMS["purejaxrl"], loop.train, loop.num_updates * num_envs * NUM_STEPS)
 
 
@@ -254,6 +249,7 @@ def stepping_programs(num_envs: int, rollouts: int) -> dict[str, tuple[Callable,
     """name -> (jitted program state -> state, initial state), each `rollouts` x NUM_STEPS steps."""
     import jax
     from mujoco_playground import wrapper
+    from purejaxrl_loop import playground_env  # this folder's, on the path when run as a script
 
     from rpo_jax import envs, ppo
 

@@ -38,6 +38,16 @@ import numpy as np
 import optax
 from flax.linen.initializers import constant, orthogonal
 
+TASK = "CartpoleBalance"  # Playground's, compare.py's `mjx-dmc/cartpole-balance`
+
+
+def playground_env() -> Any:
+    """Playground's CartpoleBalance in JAX (`impl='jax'`), the work compare.py measures."""
+    from mujoco_playground import dm_control_suite
+
+    return dm_control_suite.load(TASK, config_overrides={"impl": "jax"})
+
+
 SETTINGS = {
     "num_steps": 32, "update_epochs": 4, "num_minibatches": 8, "hidden": (64, 64), "lr": 3e-4, "adam_eps": 1e-8,
     "max_grad_norm": 0.5, "clip_eps": 0.2, "vf_coef": 0.5, "gamma": 0.99, "gae_lambda": 0.95,
@@ -218,8 +228,6 @@ def main(argv: list[str] | None = None) -> int:
     steps_per_update = args.num_envs * SETTINGS["num_steps"]
     if args.timesteps < steps_per_update:
         parser.error(f"--timesteps must be at least one update: {args.num_envs} environments x {SETTINGS['num_steps']} steps")
-    from compare import playground_env  # this folder's, on the path when run as a script
-
     loop = make_loop(args.num_envs, args.timesteps, playground_env)
     key = jax.random.PRNGKey(0)
     start = time.perf_counter()

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # benchmarks/: compare.py and the loop
 import purejaxrl_loop  # noqa: E402
-from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, playground_env, rpo_config  # noqa: E402
+from compare import ENV, EPOCHS, HIDDEN, MINIBATCHES, NUM_STEPS, rpo_config  # noqa: E402
+from purejaxrl_loop import playground_env  # noqa: E402
 
 from rpo_jax import envs, ppo  # noqa: E402
 
