@@ -88,7 +88,7 @@ def _interruptible(plan: RunPlan) -> Iterator[None]:
 
 @dataclasses.dataclass
 class Compiled:
-    """What `run` builds before the loop: the trainer, the state and the compiled chunk."""
+    """What `compile_runs` builds before the loop: the trainer, the state and the compiled chunk."""
 
     trainer: ppo.Trainer
     placement: devices.Placement
@@ -294,8 +294,10 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     evolve = population.step_program(plan, placement, state) if plan.pbt else None
     seconds = time.perf_counter() - start
     return Compiled(
-        trainer, placement, state, record, run_chunk, chunk, seconds, run_eval, eval_keys, capture, video_keys, evolve
-    )
+        trainer=trainer, placement=placement, state=state, record=record, run_chunk=run_chunk, chunk=chunk,
+        compile_seconds=seconds, run_eval=run_eval, eval_keys=eval_keys, capture=capture, video_keys=video_keys,
+        evolve=evolve,
+    )  # fmt: skip
 
 
 def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
