@@ -156,7 +156,7 @@ def run_command(args: EvaluateArgs) -> None:
 
 
 def evaluate_perturbed(args: EvaluateArgs, saved: dict, run: int) -> None:
-    """The run's deterministic policy over the grid of --perturb, in one program: a table, and a
+    """The run's deterministic policy over the grid of --perturb (one program; a host task: one a point): a table, and a
     JSON file and a figure written new into the run directory."""
     if args.stochastic or args.video:
         raise UsageError("--perturb evaluates the deterministic policy without a video; drop --stochastic and --video")
@@ -192,7 +192,8 @@ def evaluate_perturbed(args: EvaluateArgs, saved: dict, run: int) -> None:
         f"{saved['env']} run {run} (seed {seed}), deterministic policy, {episodes} episodes a point: nominal "
         f"{result.nominal:.2f}, grid mean {result.means.mean():.2f}, worst {result.means.min():.2f}, "
         f"{result.kept_share:.0%} of points keep {robustness.KEPT_SHARE:.0%} of nominal; "
-        f"{result.means.size} points in one program, {seconds:.1f} s"
+        f"{result.means.size} points {'a program each (host-side)' if env.spec.runs_on_host else 'in one program'}, "
+        f"{seconds:.1f} s"
     )
     print(f"wrote {stem.with_suffix('.json')} and {stem.with_suffix('.png')}")
 

@@ -18,6 +18,7 @@ writes the table, a JSON file and a figure into the run directory.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 from typing import Callable
@@ -28,7 +29,17 @@ import numpy as np
 
 from rpo_jax import envs
 from rpo_jax.acting import ActFn, first_episode_returns
-from rpo_jax.envs.perturbations import AXES, MAX_DELAY, MODEL_AXES, NOMINAL, Perturbed, check_axes
+from rpo_jax.envs.perturbations import (
+    AXES,
+    MAX_DELAY,
+    MODEL_AXES,
+    NOMINAL,
+    SIGNAL_AXES,
+    Perturbed,
+    check_axes,
+    check_model,
+    scale_in_place,
+)
 from rpo_jax.errors import UsageError
 
 # The share of its nominal return that a policy must keep at a grid point to count as robust there.
@@ -123,10 +134,9 @@ def grid_returns(env: envs.Env, grid: Grid, episodes: int, key: jax.Array) -> Ca
     """Jittable: a policy's returns [points + 1, episodes] at every point of `grid` (in
     `Grid.points`' order) and, last, at the nominal physics; vmappable over policies."""
     if isinstance(env, (envs.HostEnv, envs.BatchedHostEnv)):
-        raise UsageError(f"{env.spec.name} steps on the host; --perturb applies to tasks simulated inside the program")
+        raise UsageError(f"{env.spec.name} steps on the host: its grid is a program a point (`host_grid_returns`)")
     check_axes(env, grid.axes)
-    nominal = np.asarray([[NOMINAL[axis] for axis in grid.axes]], np.float32)
-    points = jnp.asarray(np.concatenate([grid.points(), nominal]))
+    points = jnp.asarray(points_and_nominal(grid))
 
     def returns(policy: ActFn) -> jax.Array:
         def at(point: jax.Array) -> jax.Array:
@@ -138,6 +148,59 @@ def grid_returns(env: envs.Env, grid: Grid, episodes: int, key: jax.Array) -> Ca
     return returns
 
 
+def points_and_nominal(grid: Grid) -> np.ndarray:
+    """`grid.points()` and, last, the nominal point [points + 1, axes]."""
+    return np.concatenate([grid.points(), np.asarray([[NOMINAL[axis] for axis in grid.axes]], np.float32)])
+
+
+def check_host_axes(env: envs.HostEnv, axes: tuple[str, ...]) -> None:
+    """Refuses (one line) an unknown axis, or a model axis that `env`'s simulators have no
+    MuJoCo model for (`HostEnv.mujoco_models`) or that would change nothing in it."""
+    for axis in axes:
+        if axis not in AXES:
+            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
+    model_axes = [axis for axis in axes if axis in MODEL_AXES]
+    if not model_axes:
+        return
+    pool = env.make_simulators(1, 0)
+    try:
+        models = env.mujoco_models(pool) if env.mujoco_models else []
+        if not models:
+            raise UsageError(
+                f"{env.spec.name} steps on the host with no MuJoCo model that rpo_jax reaches (Gymnasium's MuJoCo "
+                f"tasks'), so {model_axes[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
+            )
+        check_model(env.spec.name, models[0], model_axes)
+    finally:
+        pool.close()
+
+
+def host_grid_returns(env: envs.HostEnv, policy: ActFn, grid: Grid, episodes: int, key: jax.Array) -> np.ndarray:
+    """`grid_returns` for a host task, a compiled program a point: each point's simulators are
+    built with their MuJoCo models scaled (`perturbations.scale_in_place`), its sensing and acting
+    axes applied in the program, every point from the same key (so the same episode starts)."""
+    check_host_axes(env, grid.axes)
+    rows = []
+    for point in points_and_nominal(grid):
+        values = dict(zip(grid.axes, (float(value) for value in point)))
+        scaled = {axis: value for axis, value in values.items() if axis in MODEL_AXES}
+
+        def prepare(pool: object, scaled: dict[str, float] = scaled) -> None:
+            for model in env.mujoco_models(pool):
+                for axis, factor in scaled.items():
+                    scale_in_place(model, axis, factor)
+
+        batched = env.with_prepared(prepare).vectorize(episodes)
+        signals = {axis: (value, value) for axis, value in values.items() if axis not in MODEL_AXES}
+        stepped = Perturbed(batched, signals)
+        try:
+            returns = functools.partial(first_episode_returns, stepped, policy, episodes, deterministic=True)
+            rows.append(np.asarray(jax.jit(returns)(key)[0]))
+        finally:
+            batched.close()
+    return np.stack(rows)
+
+
 def result_of(grid: Grid, returns: np.ndarray) -> Result:
     """A `Result` from `grid_returns`' array [points + 1, episodes]."""
     return Result(grid, returns[:-1].reshape(*grid.shape, -1), returns[-1])
@@ -145,7 +208,10 @@ def result_of(grid: Grid, returns: np.ndarray) -> Result:
 
 def evaluate_under(env: envs.Env, policy: ActFn, grid: Grid, episodes: int, key: jax.Array) -> Result:
     """The deterministic policy's undiscounted returns on `episodes` episodes at every point of
-    `grid` and at the nominal physics, in one compiled program (`env` simulated inside it)."""
+    `grid` and at the nominal physics: in one compiled program where `env` is simulated inside
+    it, a program a point where it steps on the host (`host_grid_returns`)."""
+    if isinstance(env, envs.HostEnv):
+        return result_of(grid, host_grid_returns(env, policy, grid, episodes, key))
     returns = grid_returns(env, grid, episodes, key)
     return result_of(grid, np.asarray(jax.jit(lambda: returns(policy))()))
 

@@ -228,15 +228,26 @@ def dataclasses_replace(spec, prefix, backend):
 def test_each_episode_draws_its_own_physics_the_same_for_the_same_key(go1):
     from rpo_jax.envs import mjx_robots
 
-    draw = jax.jit(lambda key: mjx_robots.randomized_leaves(go1.nominal, go1.randomize, key))
+    draw = jax.jit(lambda key: mjx_robots.randomized_leaves(go1.model, go1.randomize, key))
     first, second, again = draw(jax.random.PRNGKey(0)), draw(jax.random.PRNGKey(1)), draw(jax.random.PRNGKey(0))
     assert first.geom_friction[0, 0] != second.geom_friction[0, 0]  # the floor's friction, U(0.4, 1.0)
     assert not np.allclose(first.body_mass, second.body_mass)  # every link's mass, x U(0.9, 1.1)
     for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(again)):
         np.testing.assert_array_equal(a, b)
-    model = mjx_robots.with_leaves(go1.nominal, first)  # what the episode steps
+    model = mjx_robots.with_leaves(go1.model, first)  # what the episode steps
     np.testing.assert_array_equal(model.body_mass, first.body_mass)
-    np.testing.assert_array_equal(model.geom_size, go1.nominal.geom_size)  # not randomised: the nominal's
+    np.testing.assert_array_equal(model.geom_size, go1.model.geom_size)  # not randomised: the nominal's
+
+
+def test_a_perturbation_scales_each_episodes_randomised_model(go1):
+    from rpo_jax.envs import mjx_robots
+    from rpo_jax.envs.perturbations import scaled_model, with_model
+
+    heavier = with_model(go1, lambda model: scaled_model(model, "mass", 2.0))
+    leaves = mjx_robots.randomized_leaves(go1.model, go1.randomize, jax.random.PRNGKey(0))
+    with heavier.stepping(leaves) as env:  # what Playground's step reads: the drawn masses, doubled
+        np.testing.assert_allclose(env.unwrapped.mjx_model.body_mass, 2 * leaves.body_mass, rtol=1e-6)
+    assert go1.env.unwrapped.mjx_model is go1.model and go1.change is None  # restored; the original untouched
 
 
 def test_off_the_nominal_model_and_a_users_randomiser_by_its_import_path():
@@ -249,7 +260,7 @@ def test_off_the_nominal_model_and_a_users_randomiser_by_its_import_path():
     state, _ = jax.eval_shape(nominal.reset, jax.random.PRNGKey(0))
     assert state[1] is None  # no drawn leaves: every episode steps the nominal model
     own = envs.make_env("mjx-robot/Go1JoystickFlatTerrain?randomize=test_robots:heavier_floor")
-    leaves = jax.jit(lambda key: mjx_robots.randomized_leaves(own.nominal, own.randomize, key))(jax.random.PRNGKey(3))
+    leaves = jax.jit(lambda key: mjx_robots.randomized_leaves(own.model, own.randomize, key))(jax.random.PRNGKey(3))
     assert 1.0 <= float(leaves.geom_friction[0, 0]) <= 2.0 and leaves.body_mass is None
     with pytest.raises(UsageError, match="an MJX robot's options are randomize .*, noise_level, push_enable; not kp"):
         envs.make_env("mjx-robot/Go1JoystickFlatTerrain?kp=30")

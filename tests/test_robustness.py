@@ -14,7 +14,15 @@ from point_mass_runs import finished, one_line, test_envs
 
 from rpo_jax import envs, evaluate, robustness
 from rpo_jax.acting import first_episode_returns
-from rpo_jax.envs.perturbations import Perturbed, check_axes, simulated_model
+from rpo_jax.envs.perturbations import (
+    Perturbed,
+    check_axes,
+    scale_in_place,
+    scaled_model,
+    simulated_model,
+    simulator,
+    with_model,
+)
 from rpo_jax.errors import UsageError
 
 __all__ = ["finished", "test_envs"]  # point_mass_runs' fixtures: pytest finds them here by these names
@@ -104,11 +112,53 @@ def test_axes_a_task_cannot_apply_are_refused(cartpole):
     check_axes(pendulum, ("obs-noise", "delay"))
 
 
-def test_a_host_task_refuses_every_axis():
+def gentle(obs, key, deterministic):
+    """A fixed policy that balances Gymnasium's InvertedPendulum at its own masses, not at 3x."""
+    return jnp.clip(0.5 * obs[..., 0:1] + 5 * obs[..., 1:2] + 0.5 * obs[..., 2:3] + obs[..., 3:4], -3, 3)
+
+
+def test_a_host_mujoco_task_is_perturbed_through_its_models():
     pytest.importorskip("gymnasium")
-    host = envs.make_env("gymnasium/Pendulum-v1")
-    with pytest.raises(UsageError, match="steps on the host"):
-        robustness.evaluate_under(host, balancing, robustness.Grid.parse(["obs-noise=0,1"]), 2, jax.random.PRNGKey(0))
+    host = envs.make_env("gymnasium/InvertedPendulum-v5")
+    grid = robustness.Grid.parse(["mass=1,3", "obs-noise=0,0.05"])
+    result = robustness.evaluate_under(host, gentle, grid, 4, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(result.returns[0, 0], result.nominal_returns)  # the same episodes at factor 1
+    assert result.nominal == 1000 and result.means[1, 0] < 500  # the heavier pendulum falls
+    assert not np.array_equal(result.returns[1, 1], result.returns[1, 0])  # noise changes them too
+    # What a point's simulators step: each model's masses scaled, nothing else of it.
+    nominal_pool = host.make_simulators(2, 0)
+    scaled = host.with_prepared(lambda pool: [scale_in_place(m, "mass", 3.0) for m in host.mujoco_models(pool)])
+    scaled_pool = scaled.make_simulators(2, 0)
+    try:
+        before, after = host.mujoco_models(nominal_pool)[0], host.mujoco_models(scaled_pool)[1]
+        np.testing.assert_allclose(after.body_mass, 3 * before.body_mass)
+        np.testing.assert_allclose(after.body_inertia, 3 * before.body_inertia)
+        np.testing.assert_array_equal(after.geom_friction, before.geom_friction)
+    finally:
+        nominal_pool.close(), scaled_pool.close()
+
+
+def test_a_host_task_refuses_the_axes_its_simulator_lacks():
+    pytest.importorskip("gymnasium")
+    pendulum = envs.make_env("gymnasium/Pendulum-v1")  # classic control: no MuJoCo model
+    with pytest.raises(UsageError, match="no MuJoCo model that rpo_jax reaches .*, so mass cannot change"):
+        robustness.evaluate_under(pendulum, balancing, robustness.Grid.parse(["mass=1,2"]), 2, jax.random.PRNGKey(0))
+    swinging = lambda obs, key, deterministic: jnp.clip(obs[..., 2:3], -2, 2)  # noqa: E731
+    result = robustness.evaluate_under(pendulum, swinging, robustness.Grid.parse(["delay=0,2"]), 2, jax.random.PRNGKey(0))
+    assert result.returns.shape == (2, 2)
+    inverted = envs.make_env("gymnasium/InvertedPendulum-v5")
+    with pytest.raises(UsageError, match="friction changes nothing in gymnasium/InvertedPendulum-v5"):
+        robustness.check_host_axes(inverted, ("friction",))  # its contacts are off
+
+
+def test_playground_models_are_changed_where_their_steps_read_them():
+    pytest.importorskip("mujoco_playground")
+    dmc = envs.make_env("mjx-dmc/cartpole-balance")
+    changed = with_model(dmc, lambda model: scaled_model(model, "mass", 2.0))
+    inner = simulator(changed)
+    np.testing.assert_allclose(inner.env.mjx_model.body_mass, 2 * simulated_model(dmc).body_mass)  # what step reads
+    assert simulator(dmc).env.mjx_model is simulated_model(dmc)  # the original untouched
+    check_axes(dmc, ("mass", "gain", "gravity"))
 
 
 def test_the_command_writes_a_table_json_and_figure_and_never_over_them(finished, capsys):

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from rpo_jax.envs.protocol import EnvSpec, TimeStep, first_step
+from rpo_jax.envs.protocol import EnvSpec, StepsOwnModel, TimeStep, first_step
 
 if TYPE_CHECKING:
     from mujoco import mjx
@@ -180,7 +180,7 @@ class BallBalanceState:
     target: jax.Array  # [3] position targets of the lower hinges
 
 
-class BallBalance:
+class BallBalance(StepsOwnModel):
     """IsaacGym's BallBalance rebuilt as an MJX model.
 
     A tray (radius 0.5 m, 2 cm thick, density 100) on a free joint rests at about 0.559 m on

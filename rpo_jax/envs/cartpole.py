@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rpo_jax.envs.protocol import EnvSpec, TimeStep, first_step
+from rpo_jax.envs.protocol import EnvSpec, StepsOwnModel, TimeStep, first_step
 
 SPEC = EnvSpec("cartpole", 4, 1, (-1.0,), (1.0,), 500, "mjx")
 
@@ -68,7 +68,7 @@ class CartpoleState:
     qvel: jax.Array  # [2] cart velocity, pole angular velocity
 
 
-class Cartpole:
+class Cartpole(StepsOwnModel):
     """IsaacGym's Cartpole rebuilt as an MJX model.
 
     Observation (4): cart position, cart velocity, pole angle, pole angular velocity, clipped

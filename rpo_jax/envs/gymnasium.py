@@ -121,4 +121,8 @@ def make(gym_id: str, name: str | None = None) -> HostEnv:
         make_seeded = lambda index, seed: _seeded(gym_id, name, index, seed)
         return SequentialSimulators(num_envs, seed, make_seeded, _reset, _step, _close)
 
-    return HostEnv(spec, make_simulators, lambda seed, width, height: DrawnTask(gym_id, name, seed))
+    def mujoco_models(pool: SequentialSimulators) -> list[Any]:
+        models = [getattr(sim.unwrapped, "model", None) for sim in pool.sims]
+        return models if all(type(model).__name__ == "MjModel" for model in models) else []
+
+    return HostEnv(spec, make_simulators, lambda seed, width, height: DrawnTask(gym_id, name, seed), mujoco_models=mujoco_models)

@@ -41,7 +41,7 @@ import ctypes
 import dataclasses
 import itertools
 import threading
-from typing import Callable, Protocol
+from typing import Any, Callable, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -150,26 +150,36 @@ class PoolShare:
     runs: int
 
 
+@dataclasses.dataclass(frozen=True)
 class HostEnv:
     """An environment registered for host-side stepping, before its batch size is chosen.
 
     `envs.make_env` returns one of these for a host suite; `vectorize(num_envs)` gives the
     batched environment that the trainer steps (`envs.vectorize` does it for any env).
-    `make_drawn`, where the suite can draw, builds one simulator that renders for videos."""
+    `make_drawn`, where the suite can draw, builds one simulator that renders for videos.
+    `mujoco_models`, where the suite's simulators are MuJoCo's, gives the models of a pool's
+    simulators (their arrays writable in place: `rpo_jax.robustness` scales them)."""
 
-    def __init__(
-        self,
-        spec: EnvSpec,
-        make_simulators: SimulatorFactory,
-        make_drawn: DrawnSimulatorFactory | None = None,
-        shared_pools: bool = False,
-    ) -> None:
-        self.spec, self.make_simulators, self.make_drawn = spec, make_simulators, make_drawn
-        self.shared_pools = shared_pools
+    spec: EnvSpec
+    make_simulators: SimulatorFactory
+    make_drawn: DrawnSimulatorFactory | None = None
+    shared_pools: bool = False
+    mujoco_models: Callable[[HostSimulators], list[Any]] | None = None
 
     def sharing_pools(self) -> "HostEnv":
         """This environment with the runs stepped together sharing one pool (the module's docstring)."""
-        return HostEnv(self.spec, self.make_simulators, self.make_drawn, shared_pools=True)
+        return dataclasses.replace(self, shared_pools=True)
+
+    def with_prepared(self, prepare: Callable[[HostSimulators], None]) -> "HostEnv":
+        """This environment with `prepare(pool)` called on every pool it builds, before its first reset."""
+        make = self.make_simulators
+
+        def make_prepared(num_envs: int, seed: int) -> HostSimulators:
+            pool = make(num_envs, seed)
+            prepare(pool)
+            return pool
+
+        return dataclasses.replace(self, make_simulators=make_prepared)
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
         return BatchedHostEnv(self.spec, self.make_simulators, num_envs, self.shared_pools)

@@ -25,6 +25,7 @@ many minutes (the Go1's did not finish in 10), so the CPU trains the `robot/` po
 from __future__ import annotations
 
 import contextlib
+import copy
 import functools
 import importlib.util
 import io
@@ -156,7 +157,8 @@ class MjxRobot:
     ) -> None:
         self.spec, self.env, self.randomize = spec(task, name), load_offline(task, overrides), randomize
         self.mj_model, self.control_dt = self.env.mj_model, float(self.env.dt)
-        self.nominal = self.env.mjx_model
+        self.model = self.env.mjx_model  # nominal: each episode steps its randomised copy
+        self.change: Callable[[Any], Any] | None = None  # `with_model`'s, after the randomiser's
 
     def observation(self, obs: Any) -> jax.Array:
         if not isinstance(obs, dict):
@@ -164,25 +166,32 @@ class MjxRobot:
         keys = [key for key, _ in self.spec.observation_keys] or ["state"]
         return jax.numpy.concatenate([obs[key] for key in keys], axis=-1)
 
+    def with_model(self, change: Callable[[Any], Any]) -> MjxRobot:
+        """A copy stepping `change` of each episode's model, randomised or not (`protocol.SimulatesModel`)."""
+        env = copy.copy(self)
+        env.change = change if self.change is None else lambda model: change(self.change(model))
+        return env
+
     @contextlib.contextmanager
-    def model(self, leaves: Any):
+    def stepping(self, leaves: Any):
         """Playground's env stepping the model of `leaves` (traced; Brax's trainer swaps it so too)."""
-        self.env.unwrapped._mjx_model = self.nominal if leaves is None else with_leaves(self.nominal, leaves)
+        model = self.model if leaves is None else with_leaves(self.model, leaves)
+        self.env.unwrapped._mjx_model = model if self.change is None else self.change(model)
         try:
             yield self.env
         finally:
-            self.env.unwrapped._mjx_model = self.nominal
+            self.env.unwrapped._mjx_model = self.model
 
     def reset(self, key: jax.Array) -> tuple[Any, TimeStep]:
         model_key, key = jax.random.split(key)
-        leaves = None if self.randomize is None else randomized_leaves(self.nominal, self.randomize, model_key)
-        with self.model(leaves) as env:
+        leaves = None if self.randomize is None else randomized_leaves(self.model, self.randomize, model_key)
+        with self.stepping(leaves) as env:
             state = env.reset(key)
         return (state, leaves), first_step(self.observation(state.obs))
 
     def step(self, state: Any, action: jax.Array) -> tuple[Any, TimeStep]:
         inner, leaves = state
-        with self.model(leaves) as env:
+        with self.stepping(leaves) as env:
             inner = env.step(inner, action)
         obs = self.observation(inner.obs)
         terminated = inner.done.astype(bool)

@@ -3,9 +3,11 @@ the nominal ones, by values that may be traced, so that one compiled program ste
 of them (`rpo_jax.robustness`).
 
 Model axes scale fields of an MJX model (a factor of 1 changes nothing, bit for bit); they apply
-to environments simulated by MJX in the program (`cartpole`, `ballbalance`) and are refused, in
-one line, where the task has no such physics (a factor of cartpole's zero damping would change
-nothing). Sensing and acting axes wrap any environment inside the program:
+to environments simulated by MJX in the program (`cartpole`, `ballbalance`, `mjx-dmc/`,
+`mjx-robot/`: `protocol.SimulatesModel`) and, on the host, to the MuJoCo models of Gymnasium's
+MuJoCo tasks (`scale_in_place`, `rpo_jax.robustness`); they are refused, in one line, where the
+task has no such physics (a factor of cartpole's zero damping would change nothing). Sensing and
+acting axes wrap any environment:
 
     friction        every geom's sliding friction          where contacts are on
     joint-friction  every degree of freedom's frictionloss where some is non-zero
@@ -29,7 +31,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from rpo_jax.envs.protocol import Env, TimeStep
+from rpo_jax.envs.protocol import Env, SimulatesModel, TimeStep
 from rpo_jax.errors import UsageError
 
 MAX_DELAY = 8
@@ -37,36 +39,17 @@ MAX_DELAY = 8
 SEPARATOR = "+"
 
 
-def _scaled(field: str) -> Callable[[Any, jax.Array], dict[str, Any]]:
-    return lambda model, factor: {field: getattr(model, field) * factor}
-
-
-def _gain(model: Any, factor: jax.Array) -> dict[str, Any]:
+# name -> the model fields it scales, each (field, index) ("opt.gravity" is opt's); the first is
+# the field that must be non-zero somewhere for the axis to change anything.
+ALL, FIRST = (slice(None),), (slice(None), 0)
+MODEL_AXES: dict[str, tuple[tuple[str, tuple], ...]] = {
+    "friction": (("geom_friction", FIRST),),  # the sliding coefficient, not torsion or rolling
+    "joint-friction": (("dof_frictionloss", ALL),),
+    "mass": (("body_mass", ALL), ("body_inertia", ALL)),
     # force = gain * ctrl + bias0 + bias1 * length + bias2 * velocity: all of it scales.
-    gain, bias = model.actuator_gainprm, model.actuator_biasprm
-    return {"actuator_gainprm": gain.at[:, 0].multiply(factor), "actuator_biasprm": bias.at[:, :3].multiply(factor)}
-
-
-def _friction(model: Any, factor: jax.Array) -> dict[str, Any]:
-    return {"geom_friction": model.geom_friction.at[:, 0].multiply(factor)}
-
-
-def _mass(model: Any, factor: jax.Array) -> dict[str, Any]:
-    return {"body_mass": model.body_mass * factor, "body_inertia": model.body_inertia * factor}
-
-
-def _gravity(model: Any, factor: jax.Array) -> dict[str, Any]:
-    return {"opt": model.opt.replace(gravity=model.opt.gravity * factor)}
-
-
-# name -> (what it changes in the model, the field that must be non-zero for it to change anything)
-MODEL_AXES: dict[str, tuple[Callable[[Any, jax.Array], dict[str, Any]], str]] = {
-    "friction": (_friction, "geom_friction"),
-    "joint-friction": (_scaled("dof_frictionloss"), "dof_frictionloss"),
-    "mass": (_mass, "body_mass"),
-    "gain": (_gain, "actuator_gainprm"),
-    "damping": (_scaled("dof_damping"), "dof_damping"),
-    "gravity": (_gravity, "opt.gravity"),
+    "gain": (("actuator_gainprm", FIRST), ("actuator_biasprm", (slice(None), slice(0, 3)))),
+    "damping": (("dof_damping", ALL),),
+    "gravity": (("opt.gravity", ALL),),
 }
 SIGNAL_AXES = ("obs-noise", "action-noise", "delay")
 AXES = (*MODEL_AXES, *SIGNAL_AXES)
@@ -74,14 +57,37 @@ AXES = (*MODEL_AXES, *SIGNAL_AXES)
 NOMINAL = {**{name: 1.0 for name in MODEL_AXES}, **{name: 0.0 for name in SIGNAL_AXES}}
 
 
-def simulated_model(env: Env) -> Any | None:
-    """The MJX model that `env` (or the environment it wraps) steps, if it is one."""
+def _field(model: Any, field: str) -> Any:
+    return model.opt.gravity if field == "opt.gravity" else getattr(model, field)
+
+
+def scaled_model(model: Any, axis: str, factor: Any) -> Any:
+    """The MJX model `model` with the fields of `axis` scaled by `factor` (possibly traced)."""
+    for field, index in MODEL_AXES[axis]:
+        value = _field(model, field).at[index].multiply(factor)
+        model = model.replace(opt=model.opt.replace(gravity=value)) if field == "opt.gravity" else model.replace(**{field: value})
+    return model
+
+
+def scale_in_place(mj_model: Any, axis: str, factor: float) -> None:
+    """Scales the fields of `axis` in `mj_model`, a MuJoCo model on the host (its arrays are views)."""
+    for field, index in MODEL_AXES[axis]:
+        _field(mj_model, field)[index] *= factor
+
+
+def simulator(env: Env) -> SimulatesModel | None:
+    """The environment under `env`'s wrappers that steps an MJX model inside the program, if any."""
     while env is not None:
-        model = getattr(env, "model", None)
-        if model is not None and type(model).__name__ == "Model" and hasattr(model, "body_mass"):
-            return model
+        if isinstance(env, SimulatesModel):
+            return env
         env = getattr(env, "env", None)
     return None
+
+
+def simulated_model(env: Env) -> Any | None:
+    """The nominal MJX model that `env` (or the environment it wraps) steps, if it is one."""
+    found = simulator(env)
+    return None if found is None else found.model
 
 
 def check_axes(env: Env, axes: tuple[str, ...]) -> None:
@@ -90,26 +96,38 @@ def check_axes(env: Env, axes: tuple[str, ...]) -> None:
     for axis in axes:
         if axis not in AXES:
             raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
-        if axis not in MODEL_AXES:
-            continue
-        model = simulated_model(env)
-        if model is None:
-            raise UsageError(
-                f"{env.spec.name} has no MJX model that rpo_jax scales (cartpole's and ballbalance's), so {axis} "
-                f"cannot change; its axes are {', '.join(SIGNAL_AXES)}"
-            )
-        field = MODEL_AXES[axis][1]
-        values = model.opt.gravity if field == "opt.gravity" else getattr(model, field)
-        contacts_off = axis == "friction" and int(model.opt.disableflags) & 1 << 4  # mjDSBL_CONTACT
-        if contacts_off or not bool(jnp.any(values != 0)):
-            raise UsageError(f"{axis} changes nothing in {env.spec.name}: its model has no {field.split('.')[-1]} in use")
+    model_axes = [axis for axis in axes if axis in MODEL_AXES]
+    model = simulated_model(env)
+    if model_axes and model is None:
+        raise UsageError(
+            f"{env.spec.name} has no MJX model that rpo_jax scales (cartpole's, ballbalance's, mjx-dmc/'s and "
+            f"mjx-robot/'s), so {model_axes[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
+        )
+    check_model(env.spec.name, model, model_axes)
+
+
+def can_touch(model: Any) -> bool:
+    """Whether any two geoms of `model` may be in contact: contacts on (mjDSBL_CONTACT unset) and
+    an explicit pair, or a geom whose contype meets another's conaffinity."""
+    contype, conaffinity = jnp.asarray(model.geom_contype), jnp.asarray(model.geom_conaffinity)
+    meet = bool(jnp.any((contype[:, None] & conaffinity[None, :]) != 0))
+    return not int(model.opt.disableflags) & 1 << 4 and (meet or int(model.npair) > 0)
+
+
+def check_model(name: str, model: Any, axes: list[str] | tuple[str, ...]) -> None:
+    """Refuses (one line) a model axis of `axes` that would change nothing in `model`, MJX's or
+    MuJoCo's: all its first field's values zero, or friction where no contact can happen."""
+    for axis in axes:
+        field = MODEL_AXES[axis][0][0]
+        if (axis == "friction" and not can_touch(model)) or not bool(jnp.any(jnp.asarray(_field(model, field)) != 0)):
+            raise UsageError(f"{axis} changes nothing in {name}: its model has no {field.split('.')[-1]} in use")
 
 
 @struct.dataclass
 class PerturbedState:
     inner: Any
     key: jax.Array
-    actions: jax.Array  # [MAX_DELAY + 1, action_size] the latest actions, newest first
+    actions: jax.Array  # [MAX_DELAY + 1, (N,) action_size] the latest actions, newest first
     values: jax.Array  # [axes] this episode's value of each axis
 
 
@@ -125,6 +143,8 @@ class Perturbed:
         self.low = jnp.stack([jnp.asarray(ranges[axis][0], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
         self.high = jnp.stack([jnp.asarray(ranges[axis][1], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
         self.spec = env.spec if name is None else dataclasses.replace(env.spec, name=name)
+        if hasattr(env, "num_envs"):  # a batched environment (a host pool): its values are fixed, the same for all
+            self.num_envs = env.num_envs
 
     def _draw(self, key: jax.Array) -> jax.Array:
         u = jax.random.uniform(key, self.low.shape)
@@ -144,7 +164,7 @@ class Perturbed:
 
         def change(model: Any) -> Any:
             for axis in changed:
-                model = model.replace(**MODEL_AXES[axis][0](model, self._value(values, axis)))
+                model = scaled_model(model, axis, self._value(values, axis))
             return model
 
         return with_model(self.env, change)
@@ -153,7 +173,7 @@ class Perturbed:
         draw_key, noise_key, key = jax.random.split(jax.random.fold_in(key, 0x0B5E), 3)
         values = self._draw(draw_key)
         inner, ts = self._simulator(values).reset(key)
-        actions = jnp.zeros((MAX_DELAY + 1, self.spec.action_size))
+        actions = jnp.zeros((MAX_DELAY + 1, *ts.reward.shape, self.spec.action_size))
         return PerturbedState(inner, key, actions, values), self._observed(ts, noise_key, values)
 
     def step(self, state: PerturbedState, action: jax.Array) -> tuple[PerturbedState, TimeStep]:
@@ -203,14 +223,12 @@ def perturbed(env: Env, ranges: dict[str, tuple[float, float]], name: str) -> Pe
 
 
 def with_model(env: Env, change: Callable[[Any], Any]) -> Env:
-    """A shallow copy of `env` (and of the wrappers down to its simulator) whose MJX model is
-    `change(model)`; the original is untouched."""
-    env = copy.copy(env)
-    model = getattr(env, "model", None)
-    if model is not None and simulated_model(env) is model:
-        env.model = change(model)
-        return env
+    """A shallow copy of `env` (and of the wrappers down to its simulator) whose simulator steps
+    `change(model)` (`SimulatesModel.with_model`); the original is untouched."""
+    if isinstance(env, SimulatesModel):
+        return env.with_model(change)
     if getattr(env, "env", None) is None:
         raise UsageError(f"{env.spec.name} has no MJX model to perturb")
+    env = copy.copy(env)
     env.env = with_model(env.env, change)
     return env

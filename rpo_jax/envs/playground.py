@@ -15,8 +15,9 @@ simulation) is a termination; its 1000-step episodes are `wrappers.TimeLimit` tr
 from __future__ import annotations
 
 import contextlib
+import copy
 import io
-from typing import Any
+from typing import Any, Callable
 
 import jax
 
@@ -51,6 +52,17 @@ class PlaygroundEnv(DoneIsTermination):
         with models_on_this_process():
             self.env = dm_control_suite.load(PLAYGROUND_NAMES[task], config_overrides={"impl": "jax"})
         self.mj_model, self.control_dt = self.env.mj_model, float(self.env.dt)
+
+    @property
+    def model(self) -> Any:
+        """The MJX model Playground's task steps (`protocol.SimulatesModel`)."""
+        return self.env.mjx_model
+
+    def with_model(self, change: Callable[[Any], Any]) -> PlaygroundEnv:
+        env = copy.copy(self)
+        env.env = copy.copy(self.env)
+        env.env._mjx_model = change(self.env.mjx_model)  # what Playground's `mjx_model` reads
+        return env
 
     @staticmethod
     def qpos(state: Any) -> jax.Array:

@@ -19,8 +19,9 @@ This module imports jax and flax only, no simulator.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Callable, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -209,3 +210,32 @@ class MissingExtraError(UsageError):
 
     def __init__(self, name: str, module: str, extra: str) -> None:
         super().__init__(f"env {name!r} needs {module}, which is not installed: pip install '.[{extra}]'")
+
+
+@runtime_checkable
+class SimulatesModel(Protocol):
+    """An environment that steps an MJX model inside the program, which `perturbations` changes:
+    `model` is the nominal one; `with_model(change)` a copy of the environment that steps
+    `change(model)` wherever it would step `model` (the original untouched)."""
+
+    @property
+    def model(self) -> Any:
+        """The nominal MJX model."""
+        ...
+
+    def with_model(self, change: Callable[[Any], Any]) -> Env:
+        """A copy stepping `change(model)` wherever this one steps `model`."""
+        ...
+
+
+class StepsOwnModel:
+    """`SimulatesModel` for an environment whose steps read its `model` attribute (Cartpole's,
+    BallBalance's)."""
+
+    model: Any
+
+    def with_model(self, change: Callable[[Any], Any]) -> Env:
+        """A shallow copy whose `model` is `change(model)`."""
+        env = copy.copy(self)
+        env.model = change(self.model)
+        return env
