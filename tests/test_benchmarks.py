@@ -178,6 +178,19 @@ def test_compare_robot_tables_and_draws_the_runs_it_has(tmp_path):
     assert (tmp_path / "curves.png").stat().st_size > 0
 
 
+def test_compare_robot_cuts_each_task_as_playground_and_brax_can():
+    compare_robot = script_module("compare_robot")
+    go1, panda = compare_robot.WORKS["Go1JoystickFlatTerrain"], compare_robot.WORKS["PandaPickCube"]
+    assert go1.samples_per_update(32) == 640 and panda.samples_per_update(64) == 163_840  # Playground's Panda update
+    assert compare_robot.check_budget(panda, 64, 8 * 163_840) is None
+    assert "multiple of 4 evaluations" in compare_robot.check_budget(panda, 64, 1_000_000)
+    assert "must divide" in compare_robot.check_budget(panda, 3000, 4 * 163_840)
+    # Brax's chunks an interval: Playground's 10 where they divide its updates, else fewer.
+    assert compare_robot.resets_per_eval(go1, 10, 32, 1_024_000) == 10
+    assert compare_robot.resets_per_eval(panda, 10, 64, 8 * 163_840) == 2
+    assert compare_robot.resets_per_eval(panda, 10, 64, 4 * 15 * 163_840) == 5
+
+
 @pytest.mark.slow
 def test_compare_robot_trains_both_trainers_and_resumes(tmp_path):
     out = tmp_path / "go1"
