@@ -37,8 +37,6 @@ from rpo_jax.envs.perturbations import (
     SIGNAL_AXES,
     Perturbed,
     check_axes,
-    check_model,
-    scale_in_place,
 )
 from rpo_jax.errors import UsageError
 
@@ -153,46 +151,33 @@ def points_and_nominal(grid: Grid) -> np.ndarray:
     return np.concatenate([grid.points(), np.asarray([[NOMINAL[axis] for axis in grid.axes]], np.float32)])
 
 
-def check_host_axes(env: envs.HostEnv, axes: tuple[str, ...]) -> None:
-    """Refuses (one line) an unknown axis, or a model axis that `env`'s simulators have no
-    MuJoCo model for (`HostEnv.mujoco_models`) or that would change nothing in it."""
-    for axis in axes:
-        if axis not in AXES:
-            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
-    model_axes = [axis for axis in axes if axis in MODEL_AXES]
-    if not model_axes:
-        return
-    pool = env.make_simulators(1, 0)
-    try:
-        models = env.mujoco_models(pool) if env.mujoco_models else []
-        if not models:
-            raise UsageError(
-                f"{env.spec.name} steps on the host with no MuJoCo model that rpo_jax reaches (Gymnasium's MuJoCo "
-                f"tasks'), so {model_axes[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
-            )
-        check_model(env.spec.name, models[0], model_axes)
-    finally:
-        pool.close()
+def host_env_at(env: envs.HostEnv, factors: dict[str, float]) -> envs.HostEnv:
+    """`env` with its simulators' physics scaled by `factors` ({model axis: factor}) through its
+    suite's `with_physics`; UsageError (one line) where the suite changes none or not these."""
+    if not factors:
+        return env
+    if env.with_physics is None:
+        raise UsageError(
+            f"{env.spec.name} steps on the host with no physics that rpo_jax changes, so {next(iter(factors))} "
+            f"cannot change; its axes are {', '.join(SIGNAL_AXES)}"
+        )
+    return env.with_physics(factors)
 
 
 def host_grid_returns(env: envs.HostEnv, policy: ActFn, grid: Grid, episodes: int, key: jax.Array) -> np.ndarray:
     """`grid_returns` for a host task, a compiled program a point: each point's simulators are
-    built with their MuJoCo models scaled (`perturbations.scale_in_place`), its sensing and acting
-    axes applied in the program, every point from the same key (so the same episode starts)."""
-    check_host_axes(env, grid.axes)
+    built with their physics scaled (`HostEnv.with_physics`: Gymnasium's MuJoCo tasks scale their
+    models, envpool's robots their servos' gains), its sensing and acting axes applied in the
+    program, every point from the same key (so the same episode starts)."""
+    for axis in grid.axes:
+        if axis not in AXES:
+            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
+    host_env_at(env, {axis: 1.0 for axis in grid.axes if axis in MODEL_AXES})  # refuses before any point runs
     rows = []
     for point in points_and_nominal(grid):
         values = dict(zip(grid.axes, (float(value) for value in point)))
-        scaled = {axis: value for axis, value in values.items() if axis in MODEL_AXES}
-
-        def prepare(pool: object, scaled: dict[str, float] = scaled) -> None:
-            for model in env.mujoco_models(pool):
-                for axis, factor in scaled.items():
-                    scale_in_place(model, axis, factor)
-
-        batched = env.with_prepared(prepare).vectorize(episodes)
-        signals = {axis: (value, value) for axis, value in values.items() if axis not in MODEL_AXES}
-        stepped = Perturbed(batched, signals)
+        batched = host_env_at(env, {axis: v for axis, v in values.items() if axis in MODEL_AXES}).vectorize(episodes)
+        stepped = Perturbed(batched, {axis: (v, v) for axis, v in values.items() if axis not in MODEL_AXES})
         try:
             returns = functools.partial(first_episode_returns, stepped, policy, episodes, deterministic=True)
             rows.append(np.asarray(jax.jit(returns)(key)[0]))

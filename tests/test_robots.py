@@ -170,6 +170,25 @@ def test_a_robots_settings_reach_its_simulators_and_unknown_ones_are_refused():
         robots.parse_name("robot/Go1Getup?push_enable=false")
 
 
+def test_a_robots_gain_is_its_ports_servo_gains_and_the_ports_without_them_refuse_it():
+    from rpo_jax import robustness
+
+    go1 = envs.make_env("robot/Go1JoystickFlatTerrain?noise_level=0")
+    zero = lambda obs, key, deterministic: jnp.zeros((*obs.shape[:-1], 12))  # noqa: E731
+    result = robustness.evaluate_under(go1, zero, robustness.Grid.parse(["gain=0.1,1"]), 2, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(result.returns[1], result.nominal_returns)  # kp, kd as the port's own
+    assert result.means[0] < 0.1 * result.nominal  # at a tenth of its stiffness the standing Go1 sinks
+    softer = go1.with_physics({"gain": 0.5}).make_simulators(1, 0)
+    try:
+        assert (softer.pool.config["kp"], softer.pool.config["kd"]) == (17.5, 0.25)
+    finally:
+        softer.close()
+    with pytest.raises(UsageError, match="robot/PandaPickCube: envpool's port has no setting that changes gain"):
+        robustness.host_env_at(envs.make_env("robot/PandaPickCube"), {"gain": 2.0})
+    with pytest.raises(UsageError, match="no setting that changes mass"):
+        robustness.host_env_at(go1, {"mass": 2.0})
+
+
 @pytest.mark.parametrize("name", ["robot/Go1JoystickFlatTerrain", "robot/PandaPickCube"])
 def test_the_experiments_robots_pass_the_check(name):
     assert check_env(envs.make_env(name)) == []

@@ -17,7 +17,6 @@ from rpo_jax.acting import first_episode_returns
 from rpo_jax.envs.perturbations import (
     Perturbed,
     check_axes,
-    scale_in_place,
     scaled_model,
     simulated_model,
     simulator,
@@ -126,11 +125,9 @@ def test_a_host_mujoco_task_is_perturbed_through_its_models():
     assert result.nominal == 1000 and result.means[1, 0] < 500  # the heavier pendulum falls
     assert not np.array_equal(result.returns[1, 1], result.returns[1, 0])  # noise changes them too
     # What a point's simulators step: each model's masses scaled, nothing else of it.
-    nominal_pool = host.make_simulators(2, 0)
-    scaled = host.with_prepared(lambda pool: [scale_in_place(m, "mass", 3.0) for m in host.mujoco_models(pool)])
-    scaled_pool = scaled.make_simulators(2, 0)
+    nominal_pool, scaled_pool = host.make_simulators(2, 0), host.with_physics({"mass": 3.0}).make_simulators(2, 0)
     try:
-        before, after = host.mujoco_models(nominal_pool)[0], host.mujoco_models(scaled_pool)[1]
+        before, after = nominal_pool.sims[0].unwrapped.model, scaled_pool.sims[1].unwrapped.model
         np.testing.assert_allclose(after.body_mass, 3 * before.body_mass)
         np.testing.assert_allclose(after.body_inertia, 3 * before.body_inertia)
         np.testing.assert_array_equal(after.geom_friction, before.geom_friction)
@@ -141,14 +138,14 @@ def test_a_host_mujoco_task_is_perturbed_through_its_models():
 def test_a_host_task_refuses_the_axes_its_simulator_lacks():
     pytest.importorskip("gymnasium")
     pendulum = envs.make_env("gymnasium/Pendulum-v1")  # classic control: no MuJoCo model
-    with pytest.raises(UsageError, match="no MuJoCo model that rpo_jax reaches .*, so mass cannot change"):
+    with pytest.raises(UsageError, match="not one of Gymnasium's MuJoCo tasks, so mass cannot change"):
         robustness.evaluate_under(pendulum, balancing, robustness.Grid.parse(["mass=1,2"]), 2, jax.random.PRNGKey(0))
     swinging = lambda obs, key, deterministic: jnp.clip(obs[..., 2:3], -2, 2)  # noqa: E731
     result = robustness.evaluate_under(pendulum, swinging, robustness.Grid.parse(["delay=0,2"]), 2, jax.random.PRNGKey(0))
     assert result.returns.shape == (2, 2)
     inverted = envs.make_env("gymnasium/InvertedPendulum-v5")
     with pytest.raises(UsageError, match="friction changes nothing in gymnasium/InvertedPendulum-v5"):
-        robustness.check_host_axes(inverted, ("friction",))  # its contacts are off
+        robustness.host_env_at(inverted, {"friction": 2.0})  # its geoms never touch
 
 
 def test_playground_models_are_changed_where_their_steps_read_them():

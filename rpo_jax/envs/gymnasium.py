@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from rpo_jax.envs import perturbations
 from rpo_jax.envs.host import HostEnv, SequentialSimulators
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 from rpo_jax.errors import UsageError
@@ -121,8 +122,27 @@ def make(gym_id: str, name: str | None = None) -> HostEnv:
         make_seeded = lambda index, seed: _seeded(gym_id, name, index, seed)
         return SequentialSimulators(num_envs, seed, make_seeded, _reset, _step, _close)
 
-    def mujoco_models(pool: SequentialSimulators) -> list[Any]:
-        models = [getattr(sim.unwrapped, "model", None) for sim in pool.sims]
-        return models if all(type(model).__name__ == "MjModel" for model in models) else []
+    def with_physics(factors: dict[str, float]) -> HostEnv:
+        probe = _make_one(gym_id, name)
+        try:
+            model = getattr(probe.unwrapped, "model", None)
+            if type(model).__name__ != "MjModel":
+                raise UsageError(
+                    f"{name} is not one of Gymnasium's MuJoCo tasks, so {next(iter(factors))} cannot change; "
+                    f"its axes are {', '.join(perturbations.SIGNAL_AXES)}"
+                )
+            perturbations.check_model(name, model, tuple(factors))
+        finally:
+            probe.close()
 
-    return HostEnv(spec, make_simulators, lambda seed, width, height: DrawnTask(gym_id, name, seed), mujoco_models=mujoco_models)
+        def make_scaled(num_envs: int, seed: int) -> SequentialSimulators:
+            pool = make_simulators(num_envs, seed)
+            for sim in pool.sims:
+                for axis, factor in factors.items():
+                    perturbations.scale_in_place(sim.unwrapped.model, axis, factor)
+            return pool
+
+        return HostEnv(spec, make_scaled)
+
+    drawn = lambda seed, width, height: DrawnTask(gym_id, name, seed)  # noqa: E731
+    return HostEnv(spec, make_simulators, drawn, with_physics=with_physics)

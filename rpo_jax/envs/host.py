@@ -41,7 +41,7 @@ import ctypes
 import dataclasses
 import itertools
 import threading
-from typing import Any, Callable, Protocol
+from typing import Callable, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -157,29 +157,19 @@ class HostEnv:
     `envs.make_env` returns one of these for a host suite; `vectorize(num_envs)` gives the
     batched environment that the trainer steps (`envs.vectorize` does it for any env).
     `make_drawn`, where the suite can draw, builds one simulator that renders for videos.
-    `mujoco_models`, where the suite's simulators are MuJoCo's, gives the models of a pool's
-    simulators (their arrays writable in place: `rpo_jax.robustness` scales them)."""
+    `with_physics`, where the suite can change its simulators' physics, takes {axis: factor} of
+    `perturbations.MODEL_AXES` and gives this environment with them scaled; it refuses, in one
+    line (UsageError), an axis the simulator cannot apply or in which it would change nothing."""
 
     spec: EnvSpec
     make_simulators: SimulatorFactory
     make_drawn: DrawnSimulatorFactory | None = None
     shared_pools: bool = False
-    mujoco_models: Callable[[HostSimulators], list[Any]] | None = None
+    with_physics: Callable[[dict[str, float]], "HostEnv"] | None = None
 
     def sharing_pools(self) -> "HostEnv":
         """This environment with the runs stepped together sharing one pool (the module's docstring)."""
         return dataclasses.replace(self, shared_pools=True)
-
-    def with_prepared(self, prepare: Callable[[HostSimulators], None]) -> "HostEnv":
-        """This environment with `prepare(pool)` called on every pool it builds, before its first reset."""
-        make = self.make_simulators
-
-        def make_prepared(num_envs: int, seed: int) -> HostSimulators:
-            pool = make(num_envs, seed)
-            prepare(pool)
-            return pool
-
-        return dataclasses.replace(self, make_simulators=make_prepared)
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
         return BatchedHostEnv(self.spec, self.make_simulators, num_envs, self.shared_pools)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from rpo_jax.envs import perturbations
 from rpo_jax.envs.host import HostEnv
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 from rpo_jax.envs import robot_tasks
@@ -76,17 +77,40 @@ def _import_envpool(name: str) -> Any:
     return envpool
 
 
+# The physics axes (`perturbations.MODEL_AXES`) that envpool's ports expose as settings: the
+# position servos' stiffness and damping (kp, kd) are their actuators' strength.
+SETTING_AXES = {"gain": ("kp", "kd")}
+
+
 def make(name: str) -> HostEnv:
     """The host-side environment `name` (`robot/<Task>`, with options or not)."""
-    from rpo_jax.envs.envpool_pools import EnvpoolSimulators
-
     _import_envpool(name)
     task, options = parse_name(name)
+    return _host_env(task, options, name)
+
+
+def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
+    from rpo_jax.envs.envpool_pools import EnvpoolSimulators
+
     facts = TASKS[task]
     keys = ["state", "privileged_state"] if facts.privileged_size else ["state"]
+
+    def with_physics(factors: dict[str, float]) -> HostEnv:
+        settings, changed = _settings(task), dict(options)
+        for axis, factor in factors.items():
+            fields = SETTING_AXES.get(axis, ())
+            if not fields or not all(field in settings for field in fields):
+                raise UsageError(
+                    f"{name}: envpool's port has no setting that changes {axis} (it scales kp and kd for gain, where "
+                    f"a task has them); its axes are {', '.join(perturbations.SIGNAL_AXES)}"
+                )
+            changed.update({field: options.get(field, settings[field]) * factor for field in fields})
+        return _host_env(task, changed, name)
+
     return HostEnv(
         spec(task, name),
         lambda num_envs, seed: EnvpoolSimulators(
             f"{task}-v1", facts.action_size, keys, num_envs, seed, options, megabytes_each=facts.megabytes
         ),
+        with_physics=with_physics,
     )
