@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import socket
 import sys
@@ -113,15 +114,16 @@ STOP_NOTICE_AFTER_S = 3.0
 
 
 @contextlib.contextmanager
-def stop_notice() -> Iterator[None]:
+def stop_notice() -> Iterator[threading.Event | None]:
     """Within the block, Ctrl-C or SIGTERM that has not stopped the command within
     STOP_NOTICE_AFTER_S prints one line saying the stop is coming. Python runs a signal's handler
     only between its own instructions, so while the main thread waits on a compiled chunk of
     updates (minutes, in a long run) the stop waits with it and nothing would show that it was
     taken. The interpreter's C handler writes the signal's number to the wakeup descriptor at once;
-    a watcher thread reads it there. Elsewhere than the main thread nothing changes."""
+    a watcher thread reads it there. Elsewhere than the main thread nothing changes. Yields the
+    event that says the stop has been taken (set it then: a stop after that does not quit)."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield None
         return
     reader, writer = socket.socketpair()
     writer.setblocking(False)  # the C handler must never block
@@ -130,7 +132,7 @@ def stop_notice() -> Iterator[None]:
     watcher = threading.Thread(target=_watch_stops, args=(reader, stopped), name="stop-notice", daemon=True)
     watcher.start()
     try:
-        yield
+        yield stopped
     finally:
         stopped.set()
         signal.set_wakeup_fd(previous)
@@ -142,16 +144,38 @@ def stop_notice() -> Iterator[None]:
 _STOP_NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 
 
-def _watch_stops(reader: socket.socket, stopped: threading.Event) -> None:
+def _watch_stops(reader: socket.socket, stopped: threading.Event, quit_now: Callable[[int], object] = os._exit) -> None:
+    """Announces a stop that waits (after STOP_NOTICE_AFTER_S); a stop after that announcement
+    quits at once (`quit_now(128 + signal)`), as the announcement says: the user's way out of a
+    compile or a chunk of many minutes, at the cost of the work since the last checkpoint."""
+    noticed = False
     while signals := reader.recv(16):  # b"" once the writer is closed
-        taken = [_STOP_NAMES[number] for number in signals if number in _STOP_NAMES]
+        taken = [number for number in signals if number in _STOP_NAMES]
+        if taken and noticed and not stopped.is_set():
+            lost = "the work since the last checkpoint is lost"
+            print(f"{_STOP_NAMES[taken[0]]} again: quitting now; {lost}", file=sys.stderr, flush=True)
+            quit_now(128 + taken[0])
+            return
         if taken and not stopped.wait(STOP_NOTICE_AFTER_S):
+            _drain(reader)  # a stop sent before the announcement (a double tap) does not quit
             print(
-                f"{taken[0]} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end)",
+                f"{_STOP_NAMES[taken[0]]} taken: stopping once the compiled work under way returns (a chunk of updates "
+                "runs to its end; a second one quits now, losing it)",
                 file=sys.stderr,
                 flush=True,
             )
-            return  # once is enough; later signals' bytes stay unread in the closed pair
+            noticed = True
+
+
+def _drain(reader: socket.socket) -> None:
+    reader.setblocking(False)
+    try:
+        while reader.recv(16):
+            pass
+    except BlockingIOError:
+        pass
+    finally:
+        reader.setblocking(True)
 
 
 def check_no_shadowing() -> None:
@@ -229,7 +253,7 @@ def command_failures(resume: Callable[[object | None], str] | None = None) -> It
     exit = ExitCode()
     with (
         sigterm_as_interrupt() if resume else contextlib.nullcontext(),
-        stop_notice() if resume else contextlib.nullcontext(),
+        stop_notice() if resume else contextlib.nullcontext() as stop_taken,
     ):
         try:
             yield exit
@@ -245,5 +269,7 @@ def command_failures(resume: Callable[[object | None], str] | None = None) -> It
         except (Interrupted, KeyboardInterrupt) as error:
             if resume is None:
                 raise
+            if stop_taken is not None:  # what a stop saves is saved: another one need not quit
+                stop_taken.set()
             out = error.args[0] if isinstance(error, Interrupted) else None  # before a run directory: nothing to continue
             exit.code = interrupt_failure(error, f"; {resume(out)}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import threading
 import time
 
@@ -171,6 +172,33 @@ def test_a_stop_during_a_compiled_chunk_is_announced_while_it_waits_and_taken_at
         stopper.join(timeout=60)
     assert exit.code == 128 + signum
     lines = capsys.readouterr().err.splitlines()
-    notice = f"{name} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end)"
+    notice = (
+        f"{name} taken: stopping once the compiled work under way returns (a chunk of updates runs to its end; "
+        "a second one quits now, losing it)"
+    )
     assert lines == [notice, f"{ends}; continue with: X"]
     assert signal.set_wakeup_fd(-1) == -1  # no descriptor left behind
+
+
+def test_a_stop_after_the_announcement_quits_at_once_and_one_before_it_does_not(monkeypatch):
+    """The way out of a compile or a long chunk: the announced stop, sent again, quits now with the
+    stop's exit code; a double tap before the announcement (a stop that may be taken in moments)
+    only announces."""
+    monkeypatch.setattr(errors, "STOP_NOTICE_AFTER_S", 0.0)
+    printed, quit_codes, noticed = [], [], threading.Event()
+
+    def noting(line, **kwargs):
+        printed.append(line)
+        noticed.set()
+
+    monkeypatch.setattr(errors, "print", noting, raising=False)
+    reader, writer = socket.socketpair()
+    watcher = threading.Thread(target=errors._watch_stops, args=(reader, threading.Event(), quit_codes.append))
+    watcher.start()
+    writer.send(bytes([signal.SIGINT, signal.SIGINT]))  # a double tap: one announcement
+    assert noticed.wait(60)
+    writer.send(bytes([signal.SIGINT]))  # after it: quits
+    watcher.join(timeout=60)
+    writer.close(), reader.close()
+    assert quit_codes == [130] and len(printed) == 2
+    assert printed[1] == "Ctrl-C again: quitting now; the work since the last checkpoint is lost"
