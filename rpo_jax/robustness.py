@@ -34,6 +34,7 @@ from rpo_jax.envs.perturbations import (
     MAX_DELAY,
     MODEL_AXES,
     NOMINAL,
+    PUSH,
     SIGNAL_AXES,
     Perturbed,
     check_axes,
@@ -92,7 +93,7 @@ def _parse_axis(spec: str) -> tuple[str, tuple[float, ...]]:
     if not all(math.isfinite(v) for v in values):
         raise UsageError(f"--perturb {spec!r}: every value must be a finite number")
     if min(values) < 0:
-        kind = "a scale factor" if axis in MODEL_AXES else "a standard deviation" if axis != "delay" else "a delay"
+        kind = {"delay": "a delay", PUSH: "a speed"}.get(axis, "a scale factor" if axis in MODEL_AXES else "a standard deviation")
         raise UsageError(f"--perturb {spec!r}: {axis} is {kind}, so >= 0")
     if axis == "delay" and any(v != int(v) or v > MAX_DELAY for v in values):
         raise UsageError(f"--perturb {spec!r}: delay is whole control steps in [0, {MAX_DELAY}]")
@@ -172,6 +173,8 @@ def host_grid_returns(env: envs.HostEnv, policy: ActFn, grid: Grid, episodes: in
     for axis in grid.axes:
         if axis not in AXES:
             raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
+    if PUSH in grid.axes:
+        raise UsageError(f"{env.spec.name} steps on the host: a push needs its simulator inside the program")
     host_env_at(env, {axis: 1.0 for axis in grid.axes if axis in MODEL_AXES})  # refuses before any point runs
     rows = []
     for point in points_and_nominal(grid):

@@ -17,6 +17,7 @@ from rpo_jax.acting import first_episode_returns
 from rpo_jax.envs.perturbations import (
     Perturbed,
     check_axes,
+    pushed,
     scaled_model,
     simulated_model,
     simulator,
@@ -70,6 +71,18 @@ def test_nominal_values_reproduce_the_nominal_evaluation_exactly(cartpole):
     assert summary["worst"] <= summary["mean"] and 0 <= summary["kept_share"] <= 1
 
 
+def test_a_push_kicks_the_first_joint_and_a_push_of_0_changes_nothing(cartpole):
+    limited = envs.TimeLimit(cartpole)
+    state, _ = limited.reset(jax.random.PRNGKey(0))
+    kicked = pushed(limited, state, jnp.asarray([0.5, 0.0]))  # through the time limit's state to the cart
+    np.testing.assert_array_equal(kicked.inner.qvel, state.inner.qvel + jnp.asarray([0.5, 0.0]))
+    assert kicked.elapsed == state.elapsed
+    grid = robustness.Grid.parse(["push=0,2"])
+    result = robustness.evaluate_under(cartpole, balancing, grid, 6, jax.random.PRNGKey(3))
+    np.testing.assert_array_equal(result.returns[0], result.nominal_returns)
+    assert not np.array_equal(result.returns[1], result.nominal_returns)  # 2 m/s kicks, about once in 5 s
+
+
 def test_the_whole_grid_is_one_program(cartpole, monkeypatch):
     traced = []
 
@@ -92,6 +105,7 @@ def test_the_whole_grid_is_one_program(cartpole, monkeypatch):
         (["wind=1,2"], "AXIS one of friction"),
         (["mass=nan,1"], "every value must be a finite number"),
         (["delay=0.5"], "delay is whole control steps"),
+        (["push=-1"], "push is a speed, so >= 0"),
         (["mass=1,2", "mass=3"], "gives mass more than once"),
     ],
 )
@@ -106,9 +120,11 @@ def test_axes_a_task_cannot_apply_are_refused(cartpole):
     with pytest.raises(UsageError, match="friction changes nothing in cartpole"):
         check_axes(cartpole, ("friction",))
     pendulum = envs.make_env("gym/Pendulum-v1")  # JAX, no MJX model: only sensing and acting axes
-    with pytest.raises(UsageError, match="has no MJX model that rpo_jax scales .*, so mass cannot change"):
+    with pytest.raises(UsageError, match="has no MJX model that rpo_jax changes .*, so mass cannot change"):
         check_axes(pendulum, ("mass",))
     check_axes(pendulum, ("obs-noise", "delay"))
+    with pytest.raises(UsageError, match="so push cannot change"):
+        check_axes(pendulum, ("push",))
 
 
 def gentle(obs, key, deterministic):
@@ -143,6 +159,8 @@ def test_a_host_task_refuses_the_axes_its_simulator_lacks():
     swinging = lambda obs, key, deterministic: jnp.clip(obs[..., 2:3], -2, 2)  # noqa: E731
     result = robustness.evaluate_under(pendulum, swinging, robustness.Grid.parse(["delay=0,2"]), 2, jax.random.PRNGKey(0))
     assert result.returns.shape == (2, 2)
+    with pytest.raises(UsageError, match="a push needs its simulator inside the program"):
+        robustness.evaluate_under(pendulum, swinging, robustness.Grid.parse(["push=0,1"]), 2, jax.random.PRNGKey(0))
     inverted = envs.make_env("gymnasium/InvertedPendulum-v5")
     with pytest.raises(UsageError, match="friction changes nothing in gymnasium/InvertedPendulum-v5"):
         robustness.host_env_at(inverted, {"friction": 2.0})  # its geoms never touch

@@ -198,6 +198,11 @@ class MjxRobot:
         return (inner, leaves), TimeStep(obs, inner.reward, terminated, jax.numpy.zeros((), bool), obs)
 
     @staticmethod
+    def pushed(state: Any, velocity: jax.Array) -> Any:
+        inner, leaves = state
+        return inner.replace(data=inner.data.replace(qvel=inner.data.qvel + velocity)), leaves
+
+    @staticmethod
     def qpos(state: Any) -> jax.Array:
         return state[0].data.qpos
 

@@ -15,6 +15,7 @@ acting axes wrap any environment:
     gain            every actuator's strength (gain and bias: a position servo's stiffness too)
     damping         every degree of freedom's damping      where some is non-zero
     gravity         gravity
+    push            a kick of this speed (m/s) to the first joint, about once every PUSH_EVERY_S seconds
     obs-noise       Gaussian noise of this standard deviation on every observation (its own units)
     action-noise    Gaussian noise of this standard deviation on every action, then clipped to the bounds
     delay           control steps between the policy's action and the simulator's (0 to MAX_DELAY)
@@ -52,9 +53,16 @@ MODEL_AXES: dict[str, tuple[tuple[str, tuple], ...]] = {
     "gravity": (("opt.gravity", ALL),),
 }
 SIGNAL_AXES = ("obs-noise", "action-noise", "delay")
-AXES = (*MODEL_AXES, *SIGNAL_AXES)
+# Kicks to the simulator's state: a speed (m/s) added to its first joint at random moments.
+PUSH = "push"
+AXES = (*MODEL_AXES, PUSH, *SIGNAL_AXES)
+# The axes that need a simulator inside the program (`SimulatesModel`).
+SIMULATOR_AXES = (*MODEL_AXES, PUSH)
 # The value at which an axis changes nothing.
-NOMINAL = {**{name: 1.0 for name in MODEL_AXES}, **{name: 0.0 for name in SIGNAL_AXES}}
+NOMINAL = {**{name: 1.0 for name in MODEL_AXES}, PUSH: 0.0, **{name: 0.0 for name in SIGNAL_AXES}}
+# A push comes at each control step with probability control_dt / PUSH_EVERY_S: once every
+# PUSH_EVERY_S seconds on average, as Playground's locomotion tasks push (every 5 to 10 s).
+PUSH_EVERY_S = 5.0
 
 
 def _field(model: Any, field: str) -> Any:
@@ -96,14 +104,14 @@ def check_axes(env: Env, axes: tuple[str, ...]) -> None:
     for axis in axes:
         if axis not in AXES:
             raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
-    model_axes = [axis for axis in axes if axis in MODEL_AXES]
+    needs_simulator = [axis for axis in axes if axis in SIMULATOR_AXES]
     model = simulated_model(env)
-    if model_axes and model is None:
+    if needs_simulator and model is None:
         raise UsageError(
-            f"{env.spec.name} has no MJX model that rpo_jax scales (cartpole's, ballbalance's, mjx-dmc/'s and "
-            f"mjx-robot/'s), so {model_axes[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
+            f"{env.spec.name} has no MJX model that rpo_jax changes (cartpole's, ballbalance's, mjx-dmc/'s and "
+            f"mjx-robot/'s), so {needs_simulator[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
         )
-    check_model(env.spec.name, model, model_axes)
+    check_model(env.spec.name, model, [axis for axis in axes if axis in MODEL_AXES])
 
 
 def can_touch(model: Any) -> bool:
@@ -136,7 +144,11 @@ class Perturbed:
     episode, uniformly, from its reset key (a delay: a whole number of steps in [low, high]);
     low == high fixes it. The model's fields scaled, noise on what it observes and on what it is
     told to do, its actions delayed. The simulator resets with the key it is given, so at nominal
-    values the episodes are the unperturbed ones. `name`: the spec's name, where it differs."""
+    values the episodes are the unperturbed ones. A push (`PUSH`) adds its speed to the simulator's
+    first joint: a free joint's horizontal velocity in a random direction, another joint's velocity
+    with a random sign. `name`: the spec's name, where it differs. Over a batched environment (a
+    host pool, which resets its episodes itself) the values are drawn once, for all its
+    environments: give it fixed values."""
 
     def __init__(self, env: Env, ranges: dict[str, tuple[Any, Any]], name: str | None = None) -> None:
         self.env, self.axes = env, tuple(ranges)
@@ -182,8 +194,25 @@ class Perturbed:
         low, high = jnp.asarray(self.spec.action_low), jnp.asarray(self.spec.action_high)
         actions = jnp.concatenate([jnp.clip(noisy, low, high)[None], state.actions[:-1]])
         delay = jnp.asarray(self._value(state.values, "delay")).astype(jnp.int32)
-        inner, ts = self._simulator(state.values).step(state.inner, actions[delay])
+        inner = state.inner
+        if PUSH in self.axes:  # its own key stream, so that the other axes' draws stay as they were
+            inner = self._pushed(inner, jax.random.fold_in(action_key, 1), self._value(state.values, PUSH))
+        inner, ts = self._simulator(state.values).step(inner, actions[delay])
         return state.replace(inner=inner, key=key, actions=actions), self._observed(ts, noise_key, state.values)
+
+    def _pushed(self, state: Any, key: jax.Array, speed: jax.Array) -> Any:
+        """`state` with a push of `speed` (m/s; rad/s on a hinge) on the first joint at this step,
+        with probability control_dt / PUSH_EVERY_S."""
+        sim = simulator(self.env)
+        when, heading = jax.random.split(key)
+        angle = jax.random.uniform(heading, (), maxval=2 * jnp.pi)
+        velocity = jnp.zeros(sim.mj_model.nv)
+        if int(sim.mj_model.jnt_type[0]) == 0:  # mjJNT_FREE: its first three dofs are its linear velocity
+            velocity = velocity.at[:2].set(jnp.stack([jnp.cos(angle), jnp.sin(angle)]))
+        else:
+            velocity = velocity.at[0].set(jnp.where(angle < jnp.pi, 1.0, -1.0))
+        kicked = jax.random.uniform(when) < sim.control_dt / PUSH_EVERY_S
+        return pushed(self.env, state, jnp.where(kicked, speed, 0.0) * velocity)
 
     def _observed(self, ts: TimeStep, key: jax.Array, values: jax.Array) -> TimeStep:
         noise = self._value(values, "obs-noise") * jax.random.normal(key, ts.obs.shape)
@@ -232,3 +261,13 @@ def with_model(env: Env, change: Callable[[Any], Any]) -> Env:
     env = copy.copy(env)
     env.env = with_model(env.env, change)
     return env
+
+
+def pushed(env: Env, state: Any, velocity: jax.Array) -> Any:
+    """`state` of `env` with `velocity` [nv] added to its simulator's joint velocities
+    (`SimulatesModel.pushed`), through the wrappers' states (each keeps its inner one in `inner`)."""
+    if isinstance(env, SimulatesModel):
+        return env.pushed(state, velocity)
+    if getattr(env, "env", None) is None or not hasattr(state, "inner"):
+        raise UsageError(f"{env.spec.name}: its state has no simulator to push")
+    return state.replace(inner=pushed(env.env, state.inner, velocity))

@@ -65,5 +65,9 @@ class PlaygroundEnv(DoneIsTermination):
         return env
 
     @staticmethod
+    def pushed(state: Any, velocity: jax.Array) -> Any:
+        return state.replace(data=state.data.replace(qvel=state.data.qvel + velocity))
+
+    @staticmethod
     def qpos(state: Any) -> jax.Array:
         return state.data.qpos

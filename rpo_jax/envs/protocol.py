@@ -227,10 +227,14 @@ class SimulatesModel(Protocol):
         """A copy stepping `change(model)` wherever this one steps `model`."""
         ...
 
+    def pushed(self, state: Any, velocity: jax.Array) -> Any:
+        """`state` with `velocity` [nv] added to its joint velocities."""
+        ...
+
 
 class StepsOwnModel:
-    """`SimulatesModel` for an environment whose steps read its `model` attribute (Cartpole's,
-    BallBalance's)."""
+    """`SimulatesModel` for an environment whose steps read its `model` attribute and whose state
+    carries its joint velocities as `qvel` (Cartpole's, BallBalance's)."""
 
     model: Any
 
@@ -239,3 +243,7 @@ class StepsOwnModel:
         env = copy.copy(self)
         env.model = change(self.model)
         return env
+
+    def pushed(self, state: Any, velocity: jax.Array) -> Any:
+        """`state` with `velocity` added to its `qvel`."""
+        return state.replace(qvel=state.qvel + velocity)
