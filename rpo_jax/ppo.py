@@ -70,6 +70,7 @@ class Metrics:
     clip_fraction: jax.Array
     action_std: jax.Array
     learning_rate: jax.Array
+    task_metrics: dict[str, jax.Array]  # each of the task's own metrics (`task/<name>`), its mean over the rollout's steps
 
 
 @struct.dataclass
@@ -85,6 +86,7 @@ class Transition:
     truncated: jax.Array
     episode_return: jax.Array
     episode_length: jax.Array
+    task_metrics: dict[str, jax.Array]  # what the environment reports beside the step (`info["task/<name>"]`)
 
 
 # ---------------------------------------------------------------- the trainer
@@ -184,8 +186,8 @@ def make_train(config: Config, env: envs.Env) -> Callable[..., tuple[TrainState,
 class Collected:
     """An update's first half, for its minibatch epochs: the state after the rollout (its key
     moved on, this update's learning rate set, the return statistics updated), the batch [B],
-    the epochs' key, the rollout's finished episodes (`finished_episodes`) and its count of
-    non-finite numbers (`diagnostics.count_rollout`). `--split-epochs` runs `collect` and `learn`
+    the epochs' key, the rollout's finished episodes (`finished_episodes`), its count of
+    non-finite numbers (`diagnostics.count_rollout`) and its task metrics' means. `--split-epochs` runs `collect` and `learn`
     on different devices, so this is all that passes between them."""
 
     state: TrainState
@@ -193,6 +195,7 @@ class Collected:
     epochs_key: jax.Array
     episodes: tuple[jax.Array, jax.Array, jax.Array]
     rollout_counts: tuple[jax.Array, jax.Array]
+    task_metrics: dict[str, jax.Array]
 
 
 def collect(trainer: Trainer, state: TrainState) -> Collected:
@@ -204,7 +207,10 @@ def collect(trainer: Trainer, state: TrainState) -> Collected:
     batch, value_stats = make_batch(trainer, state.params, traj, state.value_stats)
     episodes = finished_episodes(traj, state, trainer.axis_name)
     state = state.replace(opt_state=opt_state, env_state=env_state, obs=obs, key=key, value_stats=value_stats)
-    return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj, config))
+    task_metrics = {name: value.mean() for name, value in traj.task_metrics.items()}
+    if trainer.axis_name is not None:
+        task_metrics = jax.lax.pmean(task_metrics, trainer.axis_name)
+    return Collected(state, batch, epochs_key, episodes, diagnostics.count_rollout(traj, config), task_metrics)
 
 
 def diagnosed_learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, tuple[Metrics, diagnostics.Diagnostics]]:
@@ -227,6 +233,7 @@ def learn(trainer: Trainer, collected: Collected) -> tuple[TrainState, Metrics]:
         episodes_finished=finished,
         action_std=mean_scale(trainer.actor, params["actor"], collected.batch.obs),
         learning_rate=state.opt_state.hyperparams["learning_rate"],
+        task_metrics=collected.task_metrics,
         **{name: getattr(loss_metrics, name).mean() for name in LossMetrics.__dataclass_fields__},
     )
     new_state = state.replace(
@@ -248,6 +255,7 @@ def rollout(trainer: Trainer, params: dict, env_state: Any, obs: jax.Array, key:
         transition = Transition(
             obs, ts.final_obs, action, log_prob, ts.reward, ts.terminated, ts.truncated,
             ts.info["episode_return"], ts.info["episode_length"],
+            {name[len("task/") :]: value for name, value in ts.info.items() if name.startswith("task/")},
         )  # fmt: skip
         return (env_state, ts.obs), transition
 

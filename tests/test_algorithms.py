@@ -15,6 +15,7 @@ from conftest import OLDER_EMITTERS
 from point_mass import PointMass
 from scipy import special, stats
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, loss, ppo, train
 from rpo_jax.config import TANH_NORMAL, Config
 from rpo_jax.networks import DISTRIBUTIONS, perturb_location, policy_distribution
@@ -163,7 +164,7 @@ def test_a_sweep_equals_its_runs_made_one_by_one():
 def train_cartpole_briefly(config: Config):
     config = dataclasses.replace(config, total_timesteps=8 * 16 * 4)
     _, metrics = jax.jit(ppo.make_train(config, envs.make_env("cartpole")))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name
     return metrics
 

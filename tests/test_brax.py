@@ -3,6 +3,7 @@
 import jax
 import numpy as np
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, ppo
 from rpo_jax.config import Config
 
@@ -15,7 +16,7 @@ def test_brax_inverted_pendulum_updates_through_the_protocol_to_finite_metrics()
     config = Config(num_envs=16, num_steps=32, num_minibatches=2, update_epochs=2, total_timesteps=16 * 32 * 3)
     state, metrics = jax.jit(ppo.make_train(config, env))(jax.random.PRNGKey(0))
     assert state.obs.shape == (16, 4)
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name
     # A random policy drops the pendulum within tens of steps: episodes end and are reported
     # with Brax's reward of 1 per step, so the mean return equals the mean length.

@@ -59,7 +59,7 @@ def test_the_sweepable_hyperparameters_are_declared_once():
 
 
 def test_results_columns_are_the_trainers_metrics():
-    assert results.METRIC_COLUMNS == ("update", *ppo.Metrics.__dataclass_fields__)
+    assert results.METRIC_COLUMNS == ("update", *(name for name in ppo.Metrics.__dataclass_fields__ if name != "task_metrics"))
 
 
 @pytest.mark.parametrize(

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, ppo
 from rpo_jax.config import Config
 
@@ -57,7 +58,7 @@ def test_pendulum_is_truncated_at_200_steps_with_rewards_in_range():
 
 def test_pendulum_updates_to_finite_metrics():
     _, metrics = jax.jit(ppo.make_train(SMALL, envs.make_env("gym/Pendulum-v1")))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name
 
 
@@ -82,5 +83,5 @@ def test_bipedal_walker_steps_on_the_host():
 def test_bipedal_walker_updates_to_finite_metrics():
     pytest.importorskip("Box2D")
     _, metrics = jax.jit(ppo.make_train(SMALL, envs.make_env("gym/BipedalWalker-v3")))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name

@@ -17,6 +17,7 @@ import pytest
 from flax import serialization
 from point_mass import EPISODE, SPEC, PointMassSim, host_point_mass
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, evaluate, ppo, train
 from rpo_jax.config import Config
 from rpo_jax.envs import MissingExtraError
@@ -154,7 +155,7 @@ def test_runs_vmapped_over_seeds_each_step_their_own_simulators():
 def test_updates_on_a_host_env_to_finite_metrics():
     config = Config(num_envs=4, num_steps=8, num_minibatches=1, update_epochs=1, total_timesteps=4 * 8 * 2)
     _, metrics = jax.jit(ppo.make_train(config, host_point_mass()))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert value.shape == (2,) and np.isfinite(np.asarray(value)).all(), name
     np.testing.assert_allclose(metrics.episode_length, EPISODE)
 

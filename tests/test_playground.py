@@ -7,6 +7,7 @@ import jax
 import numpy as np
 import pytest
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, ppo
 from rpo_jax.config import Config
 from rpo_jax.envs import dmc_tasks
@@ -47,7 +48,7 @@ def test_pendulum_swingup_updates_to_finite_metrics_and_truncates_at_1000_steps(
     # 1,250 steps per environment: each of the 4 ends exactly one episode, by truncation.
     config = Config(num_envs=4, num_steps=250, num_minibatches=2, update_epochs=1, total_timesteps=4 * 250 * 5)
     _, metrics = jax.jit(ppo.make_train(config, env))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name
     finished = np.asarray(metrics.episodes_finished)
     assert finished.sum() == 4 and finished[3] == 4

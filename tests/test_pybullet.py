@@ -6,6 +6,7 @@ import jax
 import numpy as np
 import pytest
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax import envs, ppo
 
 pytest.importorskip("pybullet")
@@ -40,5 +41,5 @@ def test_steps_on_the_host_with_gyms_sizes_and_time_limit(name):
 def test_ant_updates_to_finite_metrics():
     config = Config(num_envs=2, num_steps=32, num_minibatches=2, update_epochs=1, total_timesteps=128)
     _, metrics = jax.jit(ppo.make_train(config, envs.make_env("pybullet/Ant")))(jax.random.PRNGKey(0))
-    for name, value in vars(metrics).items():
+    for name, value in metric_arrays(metrics).items():
         assert np.isfinite(np.asarray(value)).all(), name

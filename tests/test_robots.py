@@ -236,6 +236,20 @@ def test_an_mjx_robot_loads_from_the_installed_menagerie_and_traces_as_its_spec_
     assert mjx_env.MENAGERIE_PATH == mjx_robots.menagerie_path() and mjx_env.MENAGERIE_PATH.is_dir()
     assert go1.spec == dataclasses_replace(robots.SPECS["robot/Go1JoystickFlatTerrain"], "mjx-robot/", "mjx")
     assert first_step_problems(go1) == []
+    state, _ = jax.eval_shape(go1.reset, jax.random.PRNGKey(0))
+    _, ts = jax.eval_shape(go1.step, state, jnp.zeros(12))
+    assert "task/reward/tracking_lin_vel" in ts.info and ts.info["task/reward/tracking_lin_vel"].shape == ()
+
+
+def test_the_cpu_paths_steps_carry_the_ports_reward_terms():
+    env = envs.vectorize(envs.make_env("robot/PandaPickCube"), 2)
+    state, _ = env.reset(jax.random.PRNGKey(0))
+    try:
+        _, ts = env.step(state, jnp.zeros((2, 8)))
+        assert {"task/reward_lifted", "task/reward_success", "task/out_of_bounds"} <= set(ts.info)
+        np.testing.assert_array_equal(ts.info["task/reward_no_floor_collision"], [1.0, 1.0])  # at rest, above the floor
+    finally:
+        env.close()
 
 
 def dataclasses_replace(spec, prefix, backend):

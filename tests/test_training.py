@@ -16,7 +16,7 @@ from rpo_jax.ppo import Metrics, make_train, make_trainer
 # A few updates of a tiny RPO run (alpha > 0, so the perturbation keys are part of the result).
 TINY = Config(num_envs=8, num_steps=16, num_minibatches=2, update_epochs=2, total_timesteps=8 * 16 * 3, rpo_alpha=0.5)
 SEEDS = (0, 1, 2)
-METRIC_FIELDS = tuple(f.name for f in dataclasses.fields(Metrics))
+METRIC_FIELDS = tuple(f.name for f in dataclasses.fields(Metrics) if f.name != "task_metrics")  # Cartpole has none
 
 
 def keys_for(seeds):
@@ -90,6 +90,7 @@ def test_metrics_are_per_update_scalars(single_runs, vmapped_run):
         assert getattr(v_metrics, name).shape == (len(SEEDS), n), name
         assert np.all(np.isfinite(getattr(metrics, name))), name
     np.testing.assert_array_equal(metrics.env_steps, TINY.batch_size * np.arange(1, n + 1))
+    assert metrics.task_metrics == {}
     # Linear annealing: lr * (1 - u / n) at update u, one step of lr / n from 0 at the last update.
     np.testing.assert_allclose(metrics.learning_rate, TINY.lr * (1 - np.arange(n) / n), rtol=1e-6)
 

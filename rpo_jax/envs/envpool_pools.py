@@ -75,6 +75,8 @@ class EnvpoolSimulators:
     arrays `obs_keys` names, in that order. `options`: the task's own settings (envpool's config
     fields, e.g. a robot's `noise_level`). `megabytes_each`: one simulator's resident memory,
     where measured, weighed against the machine's before the pool is built (`check_memory`).
+    `metric_keys`: scalar fields of envpool's result that each step returns after its five arrays
+    (a robot's reward terms: `HostEnv.task_metrics`).
 
     Steps and resets go through envpool's own `_send`, `_reset` and `_recv`, the calls under its
     public `send`, `reset` and `recv`, which rebuild the action's list and the result's named
@@ -88,7 +90,7 @@ class EnvpoolSimulators:
 
     def __init__(
         self, task_id: str, action_size: int, obs_keys: Sequence[str], num_envs: int, seed: int,
-        options: Mapping[str, Any] | None = None, megabytes_each: float = 0.0,
+        options: Mapping[str, Any] | None = None, megabytes_each: float = 0.0, metric_keys: Sequence[str] = (),
     ) -> None:  # fmt: skip
         import envpool
 
@@ -106,6 +108,7 @@ class EnvpoolSimulators:
         self.action_index = len(self.action_parts) - 1  # the action comes last, after the env ids
         where = {name: index for index, name in enumerate(self.pool._state_keys)}
         self.result_index = [where[f"obs:{key}"] for key in obs_keys]
+        self.metric_index = [where[f"info:{key}"] for key in metric_keys]
         self.env_id_index, self.reward_index = where["info:env_id"], where["reward"]
         self.truncated_index, self.step_type_index = where["trunc"], where["step_type"]
 
@@ -136,9 +139,11 @@ class EnvpoolSimulators:
         env_id, reached, state = self._received()
         reward, time_limit = state[self.reward_index], state[self.truncated_index]
         step_type = state[self.step_type_index]
+        metrics = [state[index] for index in self.metric_index]
         if not np.array_equal(env_id, self.env_ids):  # a pool stepped whole answers in order
             order = np.argsort(env_id)
             reached, step_type, time_limit, reward = reached[order], step_type[order], time_limit[order], reward[order]
+            metrics = [metric[order] for metric in metrics]
         last = step_type == 2  # dm_env.StepType.LAST
         obs = reached.copy()
         if last.any():
@@ -147,8 +152,8 @@ class EnvpoolSimulators:
             self.pool._reset(np.flatnonzero(last))
             fresh_id, fresh, _ = self._received()
             obs[fresh_id] = fresh
-        # A copy: envpool may reuse the array it handed out.
-        return obs, reward.copy(), last & ~time_limit, last & time_limit, reached
+        # Copies: envpool may reuse the arrays it handed out.
+        return obs, reward.copy(), last & ~time_limit, last & time_limit, reached, *(metric.copy() for metric in metrics)
 
     def close(self) -> None:
         self.pool.close()

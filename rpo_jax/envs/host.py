@@ -159,20 +159,24 @@ class HostEnv:
     `make_drawn`, where the suite can draw, builds one simulator that renders for videos.
     `with_physics`, where the suite can change its simulators' physics, takes {axis: factor} of
     `perturbations.MODEL_AXES` and gives this environment with them scaled; it refuses, in one
-    line (UsageError), an axis the simulator cannot apply or in which it would change nothing."""
+    line (UsageError), an axis the simulator cannot apply or in which it would change nothing.
+    `task_metrics` names what the simulators report beside each step (a reward's terms, whether
+    the task succeeded), which the pools' steps return after their five arrays, in that order,
+    and the steps carry as `info["task/<name>"]`."""
 
     spec: EnvSpec
     make_simulators: SimulatorFactory
     make_drawn: DrawnSimulatorFactory | None = None
     shared_pools: bool = False
     with_physics: Callable[[dict[str, float]], "HostEnv"] | None = None
+    task_metrics: tuple[str, ...] = ()
 
     def sharing_pools(self) -> "HostEnv":
         """This environment with the runs stepped together sharing one pool (the module's docstring)."""
         return dataclasses.replace(self, shared_pools=True)
 
     def vectorize(self, num_envs: int) -> "BatchedHostEnv":
-        return BatchedHostEnv(self.spec, self.make_simulators, num_envs, self.shared_pools)
+        return BatchedHostEnv(self.spec, self.make_simulators, num_envs, self.shared_pools, self.task_metrics)
 
 
 class BatchedHostEnv:
@@ -181,8 +185,12 @@ class BatchedHostEnv:
     `in_place` (default: whether JAX computes on the CPU) chooses buffer callbacks, which need
     XLA's buffers in host memory, over `io_callback`, which copies them there from any device."""
 
-    def __init__(self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int, shared_pools: bool = False) -> None:
+    def __init__(
+        self, spec: EnvSpec, make_simulators: SimulatorFactory, num_envs: int, shared_pools: bool = False,
+        task_metrics: tuple[str, ...] = (),
+    ) -> None:  # fmt: skip
         self.spec, self.make_simulators, self.num_envs = spec, make_simulators, num_envs
+        self.task_metrics = task_metrics
         self.shared_pools = shared_pools
         self.pools: dict[int, HostSimulators | PoolShare] = {}
         self.closed: set[int] = set()
@@ -192,7 +200,8 @@ class BatchedHostEnv:
         obs = jax.ShapeDtypeStruct((n, obs_size), jnp.float32)
         flag = jax.ShapeDtypeStruct((n,), jnp.bool_)
         self.reset_shapes = (jax.ShapeDtypeStruct((), jnp.int32), obs)
-        self.step_shapes = (obs, jax.ShapeDtypeStruct((n,), jnp.float32), flag, flag, obs)
+        per_env = jax.ShapeDtypeStruct((n,), jnp.float32)
+        self.step_shapes = (obs, per_env, flag, flag, obs, *(per_env for _ in task_metrics))
 
     def _host_reset(self, out: tuple[np.ndarray, ...], seed: np.ndarray) -> None:
         """seed [*runs] -> `out` (handle [*runs], obs [*runs, N, obs]): a pool of its own for each
@@ -213,7 +222,7 @@ class BatchedHostEnv:
 
     def _host_step(self, out: tuple[np.ndarray, ...], handle: np.ndarray, action: np.ndarray) -> None:
         """handle [*runs] and action [*runs, N, act] -> `out` (obs, reward, terminated, truncated,
-        final_obs), each [*runs, ...]: under `jax.vmap` the runs' steps arrive in one call (`runs`
+        final_obs, the task's metrics), each [*runs, ...]: under `jax.vmap` the runs' steps arrive in one call (`runs`
         empty without it), and their pools are stepped side by side (a shared pool once, whole,
         its results reshaped into `out`). Each pool's results are
         written straight into `out`, not stacked first: the scan's own cost a step of five pools
@@ -302,10 +311,11 @@ class BatchedHostEnv:
         return HostState(handle), first_step(obs)
 
     def step(self, state: HostState, action: jax.Array) -> tuple[HostState, TimeStep]:
-        obs, reward, terminated, truncated, final_obs = self._call(
+        obs, reward, terminated, truncated, final_obs, *metrics = self._call(
             self._host_step, self.step_shapes, state.handle, action.astype(jnp.float32), vmap_method="broadcast_all"
         )
-        return state, TimeStep(obs, reward, terminated, truncated, final_obs)
+        info = {f"task/{name}": value for name, value in zip(self.task_metrics, metrics)}
+        return state, TimeStep(obs, reward, terminated, truncated, final_obs, info)
 
 
 class SequentialSimulators:

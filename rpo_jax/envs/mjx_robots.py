@@ -149,7 +149,8 @@ def with_leaves(model: Any, leaves: Any) -> Any:
 
 class MjxRobot:
     """One of Playground's robots behind the protocol, its observation dict concatenated in the
-    spec's key order; `done` is a termination, the time limit `wrappers.TimeLimit`'s. The state
+    spec's key order; `done` is a termination, the time limit `wrappers.TimeLimit`'s; Playground's
+    `metrics` (the reward's terms, ...) go with each step as `info["task/<name>"]`. The state
     is (Playground's state, the episode's randomised model leaves or None)."""
 
     def __init__(
@@ -195,7 +196,8 @@ class MjxRobot:
             inner = env.step(inner, action)
         obs = self.observation(inner.obs)
         terminated = inner.done.astype(bool)
-        return (inner, leaves), TimeStep(obs, inner.reward, terminated, jax.numpy.zeros((), bool), obs)
+        info = {f"task/{name}": jax.numpy.asarray(value, jax.numpy.float32) for name, value in inner.metrics.items()}
+        return (inner, leaves), TimeStep(obs, inner.reward, terminated, jax.numpy.zeros((), bool), obs, info)
 
     @staticmethod
     def pushed(state: Any, velocity: jax.Array) -> Any:

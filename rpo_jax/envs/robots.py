@@ -94,6 +94,7 @@ def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
 
     facts = TASKS[task]
     keys = ["state", "privileged_state"] if facts.privileged_size else ["state"]
+    metrics = metric_keys(task)
 
     def with_physics(factors: dict[str, float]) -> HostEnv:
         settings, changed = _settings(task), dict(options)
@@ -110,7 +111,20 @@ def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
     return HostEnv(
         spec(task, name),
         lambda num_envs, seed: EnvpoolSimulators(
-            f"{task}-v1", facts.action_size, keys, num_envs, seed, options, megabytes_each=facts.megabytes
+            f"{task}-v1", facts.action_size, keys, num_envs, seed, options, facts.megabytes, metrics
         ),
         with_physics=with_physics,
+        task_metrics=metrics,
     )
+
+
+def metric_keys(task: str) -> tuple[str, ...]:
+    """What envpool's port reports beside each step: the scalar float fields of its result (each
+    reward term as `reward_<term>`, a manipulator's `out_of_bounds`), Playground's `metrics`."""
+    import numpy as np
+
+    result = _import_envpool(PREFIX + task).make_spec(f"{task}-v1").observation_spec()
+    return tuple(
+        name for name in result._fields
+        if getattr(getattr(result, name), "shape", None) == () and np.issubdtype(getattr(result, name).dtype, np.floating)
+    )  # fmt: skip

@@ -43,7 +43,7 @@ def logged_rows(
         if update % plan.log_every and update != plan.config.num_updates and not evaluated:
             continue
         for index, run in enumerate(runs):
-            values = {name: float(value[index, offset]) for name, value in vars(metrics).items()}
+            values = {name: float(value[index, offset]) for name, value in metric_arrays(metrics).items()}
             # Counted here in Python's integers: the trainer's int32 count wraps after 2**31 steps.
             values["env_steps"] = update * plan.config.batch_size
             values["episodes_finished"] = int(values["episodes_finished"])
@@ -55,12 +55,19 @@ def logged_rows(
     return rows
 
 
+def metric_arrays(metrics: Any) -> dict[str, np.ndarray]:
+    """The trainer's metrics by the name a row gives them, each [runs, updates]: its task's own
+    (`Metrics.task_metrics`) as `task/<name>`."""
+    fields = {name: value for name, value in vars(metrics).items() if name != "task_metrics"}
+    return fields | {f"task/{name}": value for name, value in metrics.task_metrics.items()}
+
+
 def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) -> dict[str, float]:
     """What a progress function gets after a chunk: each of the trainer's metrics at the chunk's
     last update (`episode_return`, `policy_entropy`, ...) and `eval_return` where the chunk ended
     with an evaluation, as means over the runs (`episode_return` over those that have ended an
     episode, NaN before any has), and `sps`, steps/s over all runs."""
-    values = {name: float(np.mean(value[:, -1])) for name, value in vars(metrics).items() if name != "env_steps"}
+    values = {name: float(np.mean(value[:, -1])) for name, value in metric_arrays(metrics).items() if name != "env_steps"}
     # Over the runs that have ended an episode (`scores.episode_ended`); NaN while none has.
     ended = (metrics.episodes_finished[:, -1] > 0) | (metrics.episode_length[:, -1] > 0)
     values["episode_return"] = float(np.mean(metrics.episode_return[ended, -1])) if ended.any() else math.nan
@@ -72,13 +79,14 @@ def progress_metrics(metrics: Any, sps: float, eval_returns: np.ndarray | None) 
 def first_nonfinite(metrics: ppo.Metrics, diagnostics: Diagnostics) -> tuple[int, int, list[str]] | None:
     """(offset in the chunk, run index, quantities) of the first update at which a run met NaN
     or inf, naming what went non-finite first: observation (or one overflowing float32 when
-    squared), reward, loss (any logged metric),
+    squared), reward, loss (any of the trainer's metrics),
     parameters or a running statistic ("observation normaliser's var"). Arrays are [runs,
     updates of the chunk]."""
     found = {
         f"observation (NaN, inf or past ±{OVERFLOWING_OBSERVATION:.1e})": diagnostics.nonfinite_observations > 0,
         "reward": diagnostics.nonfinite_rewards > 0,
-        "loss": ~np.all([np.isfinite(value) for value in vars(metrics).values()], axis=0),
+        # The trainer's own metrics: a task's metrics are reported, not trained on.
+        "loss": ~np.all([np.isfinite(value) for name, value in vars(metrics).items() if name != "task_metrics"], axis=0),
         "parameters": diagnostics.nonfinite_parameters > 0,
         **{statistic_name(name): counts > 0 for name, counts in diagnostics.nonfinite_statistics.items()},
     }

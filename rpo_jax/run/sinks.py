@@ -15,8 +15,9 @@ from rpo_jax.ppo import Metrics
 from rpo_jax.run.directory import RunDir
 from rpo_jax.run.video import ffmpeg_started
 
-# The trainer's metrics less the step counter, which is TensorBoard's x axis.
-TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name != "env_steps")
+# The trainer's metrics less the step counter, which is TensorBoard's x axis, and the task's own
+# (a row's `task/<name>`, whichever the task has).
+TENSORBOARD_METRICS = tuple(name for name in Metrics.__dataclass_fields__ if name not in ("env_steps", "task_metrics"))
 HPARAMS_METRICS = ("train/episode_return", "eval/episode_return")
 VIDEO_TAG = "video/episodes"
 
@@ -30,9 +31,10 @@ def run_hyperparameters(record: dict[str, Any], run: dict[str, Any]) -> dict[str
 
 
 def row_scalars(row: dict[str, Any]) -> dict[str, float]:
-    """A logged row's scalars by the trackers' tag: the trainer's metrics and steps/s under
-    train/, the evaluation return under eval/."""
+    """A logged row's scalars by the trackers' tag: the trainer's metrics, the task's own and
+    steps/s under train/ (train/task/<name>), the evaluation return under eval/."""
     scalars = {f"train/{name}": row[name] for name in TENSORBOARD_METRICS}
+    scalars.update({f"train/{name}": value for name, value in row.items() if name.startswith("task/")})
     scalars["train/sps"] = row["sps"]
     if "eval_return" in row:
         scalars["eval/episode_return"] = row["eval_return"]
