@@ -88,7 +88,7 @@ class EvaluateArgs:
     """also render one episode to this file"""
     perturb: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="AXIS=START:STOP:COUNT")] = ()
     """evaluate over a grid of changed physics instead (repeat for more axes): friction, joint-friction, mass, gain, damping,
-    gravity (scale factors), obs-noise, action-noise (standard deviations), delay (steps); docs: Robustness"""
+    gravity (scale factors), push (m/s), obs-noise, action-noise (standard deviations), delay (steps); docs: Robustness"""
     cache: tyro.conf.OmitArgPrefixes[CompileCache] = CompileCache()
 
 
