@@ -152,8 +152,8 @@ class Perturbed:
 
     def __init__(self, env: Env, ranges: dict[str, tuple[Any, Any]], name: str | None = None) -> None:
         self.env, self.axes = env, tuple(ranges)
-        self.low = jnp.stack([jnp.asarray(ranges[axis][0], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
-        self.high = jnp.stack([jnp.asarray(ranges[axis][1], jnp.float32) for axis in self.axes]) if ranges else jnp.zeros(0)
+        bounds = [jnp.asarray(ranges[axis], jnp.float32) for axis in self.axes]  # each [low, high]
+        self.low, self.high = jnp.stack(bounds, axis=1) if bounds else jnp.zeros((2, 0))
         self.spec = env.spec if name is None else dataclasses.replace(env.spec, name=name)
         if hasattr(env, "num_envs"):  # a batched environment (a host pool): its values are fixed, the same for all
             self.num_envs = env.num_envs
