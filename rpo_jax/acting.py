@@ -1,8 +1,8 @@
 """A policy acting in environments, shared by every consumer: the environment training steps
-(`wrap_for_training`), the policy of a trained or training run (`Policy`) and the returns of its
-first episodes (`first_episode_returns`).
+(`wrap_for_training`), the policy of a trained or training run (`Policy`) and what its first
+episodes score (`first_episodes`: the returns and the task's own metrics).
 
-`Policy` and `first_episode_returns` serve `rpo_jax.load_policy`, `rpo_jax.evaluate` and the
+`Policy` and `first_episodes` serve `rpo_jax.load_policy`, `rpo_jax.evaluate` and the
 evaluation during training (`--eval-every`), so that all three act and count returns the same way.
 """
 
@@ -93,27 +93,45 @@ def policy_of(config: Config, spec: envs.EnvSpec, params: Any, obs_stats: envs.R
     return Policy(config, actor, params, obs_stats, low, high, spec.part(spec.policy_obs_key), spec.observation_size)
 
 
-def first_episode_returns(
-    env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool
-) -> tuple[jax.Array, jax.Array]:
-    """Jittable: the undiscounted return of the first episode of each of `episodes` fresh
-    copies of `env` (its own rewards, no scaling or normalisation), and whether it ended within
-    max_episode_steps. Both [episodes]. `env` may be batched already, with `episodes` copies."""
+@struct.dataclass
+class FirstEpisodes:
+    """What `first_episodes` measures of each of its episodes, each [episodes]."""
+
+    returns: jax.Array  # undiscounted, the environment's own rewards (no scaling or normalisation)
+    finished: jax.Array  # whether it ended within max_episode_steps
+    task_metrics: dict[str, jax.Array]  # each of the task's own metrics (`info["task/<name>"]`) summed over the episode
+
+
+def first_episodes(env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool) -> FirstEpisodes:
+    """Jittable: the first episode of each of `episodes` fresh copies of `env` under `policy`.
+    `env` may be batched already, with `episodes` copies."""
     vec = envs.EpisodeStatistics(env if isinstance(env, envs.BatchedEnv) else envs.vectorize(env, episodes))
     reset_key, act_key = jax.random.split(key)
     state, ts = vec.reset(reset_key)
+    zeros = jnp.zeros(episodes)
+    # The task's metrics, by the names its steps give them (none for most tasks).
+    action = jax.ShapeDtypeStruct((episodes, env.spec.action_size), jnp.float32)
+    sums = {name[len("task/") :]: zeros for name in jax.eval_shape(vec.step, state, action)[1].info if name.startswith("task/")}
 
     def step(carry, key):
-        state, obs, returns, finished = carry
+        state, obs, returns, finished, sums = carry
         state, ts = vec.step(state, policy(obs, key, deterministic))
         done = ts.terminated | ts.truncated
         returns = jnp.where(done & ~finished, ts.info["episode_return"], returns)
-        return (state, ts.obs, returns, finished | done), None
+        sums = {name: total + jnp.where(finished, 0.0, ts.info["task/" + name]) for name, total in sums.items()}
+        return (state, ts.obs, returns, finished | done, sums), None
 
-    zeros = jnp.zeros(episodes)
-    carry = (state, ts.obs, zeros, zeros.astype(bool))
-    (_, _, returns, finished), _ = jax.lax.scan(step, carry, jax.random.split(act_key, env.spec.max_episode_steps))
-    return returns, finished
+    carry = (state, ts.obs, zeros, zeros.astype(bool), sums)
+    (_, _, returns, finished, sums), _ = jax.lax.scan(step, carry, jax.random.split(act_key, env.spec.max_episode_steps))
+    return FirstEpisodes(returns, finished, sums)
+
+
+def first_episode_returns(
+    env: envs.Env, policy: ActFn, episodes: int, key: jax.Array, deterministic: bool
+) -> tuple[jax.Array, jax.Array]:
+    """Jittable: `first_episodes`' returns and whether each episode ended, both [episodes]."""
+    measured = first_episodes(env, policy, episodes, key, deterministic)
+    return measured.returns, measured.finished
 
 
 def wrap_for_training(

@@ -138,7 +138,7 @@ def run_command(args: EvaluateArgs) -> None:
     deterministic = not args.stochastic
     # Training's program over all the runs, as in training: another rounds differently (module docstring).
     with chunks.environment_failure(saved["env"]):  # a host simulator's refusal, as one line
-        returns, means, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
+        returns, means, task_metrics, run_policy = eval_program.saved_evaluation(runs, env, episodes, seeds, deterministic)
     chosen = [run] if args.trained.run is not None else list(range(len(saved["runs"])))
     for index in chosen:
         spread = with_spread(f"{means[index]:.2f}", f" ± {sample_std(returns[index]):.2f}", episodes)
@@ -146,6 +146,8 @@ def run_command(args: EvaluateArgs) -> None:
             f"{saved['env']} run {index} (seed {saved['runs'][index]['seed']}), {policy_mode(deterministic)} policy: "
             f"return {spread} over {episodes} episodes, {episodes_source(args, index, episodes == in_training)}"
         )
+        if task_metrics:
+            print("  " + task_metrics_line({name: value[index] for name, value in task_metrics.items()}))
     if len(chosen) > 1:
         print(over_runs(saved, [float(mean) for mean in means]))
     if args.video:
@@ -196,6 +198,14 @@ def evaluate_perturbed(args: EvaluateArgs, saved: dict, run: int) -> None:
         f"{seconds:.1f} s"
     )
     print(f"wrote {stem.with_suffix('.json')} and {stem.with_suffix('.png')}")
+
+
+def task_metrics_line(sums: dict[str, np.ndarray]) -> str:
+    """The task's own metrics over a run's episodes: each one's sum over an episode, its mean over
+    the episodes, and the share of episodes in which it was ever non-zero (for an indicator such
+    as envpool's `reward_success`, the success rate)."""
+    parts = [f"{name} {float(value.mean()):.2f} ({float((value != 0).mean()):.0%})" for name, value in sorted(sums.items())]
+    return "task's metrics, summed over an episode (share of episodes where non-zero): " + ", ".join(parts)
 
 
 def new_stem(directory: Path, name: str) -> Path:

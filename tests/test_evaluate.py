@@ -42,7 +42,7 @@ def test_evaluate_acts_deterministically_unless_stochastic_and_says_which(finish
         assert line.startswith(f"test/point_mass run 0 (seed 1), {mode} policy: return "), line
         printed[mode] = line.split("return ")[1].split()[0]
         # The evaluation program of training, on the episodes of the run's final evaluation (seed 1's).
-        _, means, _ = eval_program.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
+        _, means, _, _ = eval_program.saved_evaluation(saved, env, 3, [1], deterministic=mode == "deterministic")
         assert printed[mode] == f"{means[0]:.2f}"
         assert line.endswith("over 3 episodes, those of its own seed (it trained without --eval-every)"), line
     assert printed["deterministic"] != printed["stochastic"]

@@ -131,7 +131,7 @@ def test_one_deterministic_number_in_training_through_load_policy_evaluate_and_o
     out, summary, _ = evaluated_run
     in_training = summary["runs"][0]["eval_return"]
     # evaluate runs training's evaluation program, by default on the episodes of the final evaluation.
-    _, means, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), EVAL_EPISODES, [3, 4], True)
+    _, means, _, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), EVAL_EPISODES, [3, 4], True)
     assert means.tolist() == [run["eval_return"] for run in summary["runs"]]  # bit for bit
     # The evaluation's episodes: the key the runner evaluated the last update with.
     key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(3), eval_program.STREAMS[0]), TINY.num_updates)
@@ -155,7 +155,7 @@ def test_evaluate_gives_trainings_final_evaluation_bit_for_bit_on_chaotic_cartpo
     spec = RunSpec(seed=3, num_seeds=2, eval_every=10 * TINY.batch_size, eval_episodes=EVAL_EPISODES)
     summary = rpo_jax.train_runs(tmp_path / "run", "cartpole", TINY, spec)
     logged = [run["eval_return"] for run in summary["runs"]]
-    _, means, _ = eval_program.saved_evaluation(
+    _, means, _, _ = eval_program.saved_evaluation(
         load_runs(tmp_path / "run"), envs.make_env("cartpole"), EVAL_EPISODES, [3, 4], True
     )
     assert means.tolist() == logged
@@ -181,7 +181,7 @@ def test_one_spread_sample_std_with_n_in_the_summary_the_final_line_and_the_repo
     assert evaluate.main([str(out), "--episodes", "3"]) == 0
     line = capsys.readouterr().out.strip()
     deterministic = "deterministic policy" in line
-    returns, means, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), 3, [3, 4], deterministic)
+    returns, means, _, _ = eval_program.saved_evaluation(load_runs(out), envs.make_env(ENV), 3, [3, 4], deterministic)
     assert f"return {means[0]:.2f} ± {np.std(returns[0], ddof=1):.2f} over 3 episodes" in line, line
 
 

@@ -210,6 +210,20 @@ def test_a_go1_trains_and_its_exported_policy_takes_the_48_numbers_of_its_state(
     np.testing.assert_allclose(actions, load_policy(out)(state), atol=1e-5)
 
 
+def test_the_pandas_reward_terms_are_logged_in_training_and_summed_per_episode_by_evaluate(tmp_path, capsys):
+    from rpo_jax import evaluate
+
+    out = tmp_path / "panda"
+    flags = ["--env", "robot/PandaPickCube", "--num-envs", "4", "--num-steps", "8", "--num-minibatches", "2"]
+    assert train.main([*flags, "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
+    row = json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
+    assert row["task/reward_no_floor_collision"] == 1.0 and 0 < row["task/reward_gripper_box"] < 1  # step means
+    assert evaluate.main([str(out), "--episodes", "2"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    # The port's episodes are 150 steps, the gripper never touches the floor: 150 a step's 1.
+    assert "reward_no_floor_collision 150.00 (100%)" in line and "reward_success" in line
+
+
 # --------------------------------------------------------------------------------------------
 # The MJX path: loaded and traced, never compiled (a robot's step compiles for many minutes on a CPU)
 

@@ -303,7 +303,7 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
 def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
     """Each run's evaluation return on `state`."""
     inputs = compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state))
-    _, means = compiled.run_eval(inputs, compiled.eval_keys)
+    _, means, _ = compiled.run_eval(inputs, compiled.eval_keys)
     return np.asarray(jax.device_get(means))
 
 

@@ -13,15 +13,16 @@ import jax
 import numpy as np
 
 from rpo_jax import envs, ppo
-from rpo_jax.acting import Policy, first_episode_returns, policy_of
+from rpo_jax.acting import Policy, first_episodes, policy_of
 from rpo_jax.config import Config
 
 # The streams folded into each run's key for evaluation and for videos, so that neither touches
 # training's random numbers.
 STREAMS = (0x5EED, 0x71DE0)
 
-# (runs' evaluation_inputs, keys [runs, 2]) -> (returns [runs, episodes], their means [runs])
-EvaluationProgram = Callable[[dict[str, Any], jax.Array], tuple[jax.Array, jax.Array]]
+# (runs' evaluation_inputs, keys [runs, 2]) -> (returns [runs, episodes], their means [runs], the
+# task's metrics {name: [runs, episodes]}, each summed over an episode)
+EvaluationProgram = Callable[[dict[str, Any], jax.Array], tuple[jax.Array, jax.Array, dict[str, jax.Array]]]
 
 
 def run_policy(config: Config, env: envs.Env) -> Callable[[dict[str, Any]], Policy]:
@@ -43,17 +44,17 @@ def compile_evaluation(config: Config, env: envs.Env, episodes: int, determinist
     runs train, and compiles at its first call."""
     copies, make_policy = envs.vectorize(env, episodes), run_policy(config, env)
 
-    def evaluate(inputs: dict[str, Any], key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def evaluate(inputs: dict[str, Any], key: jax.Array) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
         policy = make_policy(inputs)
         key = jax.random.fold_in(key, inputs["update"])
-        returns, _ = first_episode_returns(copies, policy, episodes, key, deterministic=deterministic)
-        return returns, returns.mean()
+        measured = first_episodes(copies, policy, episodes, key, deterministic=deterministic)
+        return measured.returns, measured.returns.mean(), measured.task_metrics
 
     program = jax.jit(jax.vmap(evaluate))
     if not isinstance(copies, envs.BatchedHostEnv):
         return program
 
-    def evaluate_and_close(inputs: dict[str, Any], keys: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def evaluate_and_close(inputs: dict[str, Any], keys: jax.Array) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
         # Every evaluation builds its own pools of simulators; nothing steps them afterwards.
         results = jax.block_until_ready(program(inputs, keys))
         copies.close()
@@ -71,15 +72,17 @@ def evaluation_inputs(trainer: ppo.Trainer, state: ppo.TrainState) -> dict[str, 
 def saved_evaluation(
     saved: tuple[Config, dict[str, Any], Any, envs.RunningMeanStd], env: envs.Env, episodes: int, seeds: Sequence[int],
     deterministic: bool,
-) -> tuple[np.ndarray, np.ndarray, Callable[[int], Policy]]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray], Callable[[int], Policy]]:  # fmt: skip
     """Training's evaluation program on every run of a finished run directory (`saved_policy.load_runs`'s
     `saved`) after its last update, each run's episodes chosen by its seed in `seeds` (its own
     seed gives the episodes of its final evaluation in training). Returns the returns [runs,
-    episodes], their means [runs] (as training logs them) and each run's `Policy` by its index."""
+    episodes], their means [runs] (as training logs them), the task's metrics {name: [runs,
+    episodes]} summed over each episode, and each run's `Policy` by its index."""
     config, _, actor_params, stats = saved
     # The update count as the training state holds it: int32, after the last update.
     inputs = {"actor": actor_params, "obs_stats": stats, "update": np.full(len(seeds), config.num_updates, np.int32)}
     keys = stream_keys(jax.vmap(jax.random.PRNGKey)(np.asarray(seeds)), STREAMS[0])
-    returns, means = compile_evaluation(config, env, episodes, deterministic)(inputs, keys)
+    returns, means, task_metrics = compile_evaluation(config, env, episodes, deterministic)(inputs, keys)
     make_policy = run_policy(config, env)
-    return np.asarray(returns), np.asarray(means), lambda run: make_policy(jax.tree.map(lambda x: x[run], inputs))
+    task_metrics = {name: np.asarray(value) for name, value in task_metrics.items()}
+    return np.asarray(returns), np.asarray(means), task_metrics, lambda run: make_policy(jax.tree.map(lambda x: x[run], inputs))
