@@ -215,9 +215,11 @@ def test_the_pandas_reward_terms_are_logged_in_training_and_summed_per_episode_b
 
     out = tmp_path / "panda"
     flags = ["--env", "robot/PandaPickCube", "--num-envs", "4", "--num-steps", "8", "--num-minibatches", "2"]
-    assert train.main([*flags, "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
+    evaluated = ["--eval-every", "32", "--eval-episodes", "2"]
+    assert train.main([*flags, *evaluated, "--total-timesteps", "64", "--out", str(out), "--quiet"]) == 0
     row = json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
     assert row["task/reward_no_floor_collision"] == 1.0 and 0 < row["task/reward_gripper_box"] < 1  # step means
+    assert row["eval_task/reward_no_floor_collision"] == 150.0 and "eval_task/reward_success" in row  # episode sums
     assert evaluate.main([str(out), "--episodes", "2"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     # The port's episodes are 150 steps, the gripper never touches the floor: 150 a step's 1.

@@ -95,7 +95,7 @@ def test_a_run_without_an_ended_episode_has_no_final_return(tmp_path, capsys):
 def test_the_progress_shows_no_return_before_an_episode_ends():
     metrics = SimpleNamespace(
         episode_return=np.zeros((2, 3)), episode_length=np.zeros((2, 3)), episodes_finished=np.zeros((2, 3)),
-        policy_entropy=np.ones((2, 3)),
+        policy_entropy=np.ones((2, 3)), task_metrics={},
     )  # fmt: skip
     assert math.isnan(records.progress_metrics(metrics, 1.0, None)["episode_return"])
     metrics.episode_length[1, -1], metrics.episode_return[1, -1] = 50, -3.0  # run 1 has ended one

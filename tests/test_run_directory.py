@@ -80,7 +80,7 @@ def test_env_steps_are_counted_in_64_bits():
     metrics = {name: np.zeros((1, 1)) for name in ("env_steps", "episode_return", "episodes_finished")}
     metrics["env_steps"][:] = -(2**31)  # what the trainer's int32 count holds at 2**31 steps
     runs = [{"seed": 1, "hparams": {}}]
-    [row] = records.logged_rows(plan, runs, SimpleNamespace(**metrics), first_update=16, chunk=1, sps=0.0)
+    [row] = records.logged_rows(plan, runs, SimpleNamespace(**metrics, task_metrics={}), first_update=16, chunk=1, sps=0.0)
     assert row["env_steps"] == 17 * 2**28 > 2**32
 
 

@@ -300,25 +300,28 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
     )  # fmt: skip
 
 
-def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> np.ndarray:
-    """Each run's evaluation return on `state`."""
+def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Each run's evaluation return on `state`, and each of the task's metrics summed over an
+    episode, its mean over the episodes {name: [runs]}."""
     inputs = compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state))
-    _, means, _ = compiled.run_eval(inputs, compiled.eval_keys)
-    return np.asarray(jax.device_get(means))
+    _, means, task_metrics = jax.device_get(compiled.run_eval(inputs, compiled.eval_keys))
+    return np.asarray(means), {name: np.asarray(sums).mean(-1) for name, sums in task_metrics.items()}
 
 
 def after_chunk(
     plan: RunPlan, compiled: Compiled, state: ppo.TrainState, first_update: int, clock: Clock, due: Due
-) -> tuple[np.ndarray | None, list[str] | None]:  # fmt: skip
-    """The evaluation returns and the videos' paths, one per run, that are `due` after the chunk
-    that ended at `first_update + chunk`, each timed apart; None where none is due."""
-    eval_returns, videos = evaluate_after_chunk(compiled, state) if due.eval else None, None
+) -> tuple[np.ndarray | None, dict[str, np.ndarray], list[str] | None]:  # fmt: skip
+    """The evaluation returns (with the task's metrics, `evaluate_after_chunk`) and the videos'
+    paths, one per run, that are `due` after the chunk that ended at `first_update + chunk`, each
+    timed apart; None (no metrics) where none is due."""
+    eval_returns, eval_task_metrics = evaluate_after_chunk(compiled, state) if due.eval else (None, {})
+    videos = None
     clock.lap("eval_seconds")
     if due.video:
         inputs = jax.device_get(compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state)))
         videos = compiled.capture(inputs, compiled.video_keys, (first_update + compiled.chunk) * plan.config.batch_size)
     clock.lap("video_seconds")
-    return eval_returns, videos
+    return eval_returns, eval_task_metrics, videos
 
 
 class Due(NamedTuple):
@@ -371,8 +374,8 @@ def train_chunks(
                 steps_done = updates_done * config.batch_size
                 sps = (steps_done - steps_before) * len(runs) / (clock.seconds["train_seconds"] - trained_before)
                 stop_if_diverged(plan, runs, metrics, first_update, nonfinite, sps, last_checkpoint, metrics_file)
-                eval_returns, videos = after_chunk(plan, compiled, state, first_update, clock, due)
-                rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos)
+                eval_returns, eval_task_metrics, videos = after_chunk(plan, compiled, state, first_update, clock, due)
+                rows = logged_rows(plan, runs, metrics, first_update, chunk, sps, eval_returns, videos, eval_task_metrics)
                 if metrics_file:
                     write_rows(metrics_file, rows)
                 record_returns(rows, logged_returns)

@@ -30,10 +30,13 @@ from rpo_jax.scores import episode_ended, final_return, sample_std
 def logged_rows(
     plan: RunPlan, runs: list[dict[str, Any]], metrics: Any, first_update: int, chunk: int, sps: float | None,
     eval_returns: np.ndarray | None = None, videos: list[str] | None = None,
+    eval_task_metrics: dict[str, np.ndarray] | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
     With `eval_returns` (one per run, after the chunk's last update) that update is logged too,
-    its rows with `eval_return`; rows of runs without evaluation have no such field. `videos`
+    its rows with `eval_return` (and `eval_task/<name>`, each of `eval_task_metrics`: the task's
+    metric summed over an episode, its mean over the evaluation's); rows of runs without
+    evaluation have no such field. `videos`
     (one path per run, in the run directory) likewise, as `video`."""
     rows = []
     last = first_update + chunk
@@ -50,6 +53,8 @@ def logged_rows(
             rows.append({"run": index, "seed": run["seed"], **run["hparams"], "update": update, **values, "sps": sps})
             if evaluated and eval_returns is not None:
                 rows[-1]["eval_return"] = float(eval_returns[index])
+                for name, means in (eval_task_metrics or {}).items():
+                    rows[-1][f"eval_task/{name}"] = float(means[index])
             if evaluated and videos is not None:
                 rows[-1]["video"] = videos[index]
     return rows

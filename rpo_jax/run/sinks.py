@@ -32,12 +32,14 @@ def run_hyperparameters(record: dict[str, Any], run: dict[str, Any]) -> dict[str
 
 def row_scalars(row: dict[str, Any]) -> dict[str, float]:
     """A logged row's scalars by the trackers' tag: the trainer's metrics, the task's own and
-    steps/s under train/ (train/task/<name>), the evaluation return under eval/."""
+    steps/s under train/ (train/task/<name>), the evaluation's under eval/ (eval/task/<name>)."""
     scalars = {f"train/{name}": row[name] for name in TENSORBOARD_METRICS}
     scalars.update({f"train/{name}": value for name, value in row.items() if name.startswith("task/")})
     scalars["train/sps"] = row["sps"]
     if "eval_return" in row:
         scalars["eval/episode_return"] = row["eval_return"]
+    evaluated = {name.removeprefix("eval_task/"): value for name, value in row.items() if name.startswith("eval_task/")}
+    scalars.update({f"eval/task/{name}": value for name, value in evaluated.items()})
     return scalars
 
 
