@@ -15,6 +15,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from rpo_jax.run.records import metric_arrays
 from rpo_jax.config import PRESETS
 from rpo_jax.envs import VectorEnv, make_env
 from rpo_jax.envs import ballbalance as bb
@@ -311,7 +312,6 @@ def test_short_training_run_gives_finite_metrics(env):
         hidden_sizes=(128, 64, 32), rpo_alpha=0.5,
     )  # fmt: skip
     state, metrics = jax.block_until_ready(jax.jit(make_train(config, env))(jax.random.PRNGKey(0)))
-    for field in dataclasses.fields(metrics):
-        values = np.asarray(getattr(metrics, field.name))
-        assert values.shape[0] == 2 and np.all(np.isfinite(values)), field.name
+    for name, values in metric_arrays(metrics).items():
+        assert values.shape[0] == 2 and np.all(np.isfinite(values)), name
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(state.params))

@@ -178,7 +178,7 @@ def test_make_batch_reads_each_final_observation_that_gae_reads(truncation, with
     traj = ppo.Transition(
         jnp.asarray(obs[:-1]), jnp.asarray(final_obs), jnp.zeros((T, N, 1)), zeros,
         jnp.asarray(rng.normal(size=(T, N)), jnp.float32), jnp.asarray(terminated), jnp.asarray(truncated),
-        zeros, zeros,
+        zeros, zeros, {},
     )  # fmt: skip
     batch, _ = jax.jit(lambda t: ppo.make_batch(trainer, state.params, t, state.value_stats))(traj)
     critic = lambda x: trainer.critic.apply(state.params["critic"], jnp.asarray(x))  # noqa: E731
