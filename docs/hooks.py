@@ -32,6 +32,7 @@ import warnings
 from pathlib import Path
 
 import tyro.extras
+from markdown.extensions.toc import slugify
 from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -147,7 +148,30 @@ GENERATORS = {"cli-reference": cli_reference, "env-table": env_table}
 
 
 def on_page_markdown(markdown: str, page, config, files) -> str:
-    return MARKER.sub(lambda match: GENERATORS[match.group(1)](), markdown)
+    return MARKER.sub(lambda match: GENERATORS[match.group(1)](), site_links(markdown))
+
+
+# A page's link to benchmarks/RESULTS.md, written as it resolves in the repository (docs/../).
+RESULTS_LINK = re.compile(r"\]\(\.\./benchmarks/RESULTS\.md(?:#([\w-]+))?\)")
+
+
+def site_links(markdown: str) -> str:
+    """A page's links as written to resolve in the repository, as the site serves them: a report
+    (`../benchmarks/reports/...`) under reports/, a section of benchmarks/RESULTS.md
+    (`../benchmarks/RESULTS.md#anchor`) on its topic's page."""
+    markdown = markdown.replace("](../benchmarks/reports/", "](reports/")
+    return RESULTS_LINK.sub(lambda match: f"](benchmarks/{results_page(match.group(1))})", markdown)
+
+
+def results_page(anchor: str | None) -> str:
+    """The benchmarks page (and anchor) of RESULTS.md's heading whose slug is `anchor`."""
+    if anchor is None:
+        return "index.md"
+    for topic, sections in results_sections()[1].items():
+        headings = re.findall(r"^#{2,4} (.+)$", "\n".join(sections), re.MULTILINE)
+        if any(slugify(heading, "-") == anchor for heading in headings):
+            return f"{topic}.md#{anchor}"
+    raise ValueError(f"no heading of benchmarks/RESULTS.md has the anchor #{anchor}")
 
 
 def published(text: str) -> str:

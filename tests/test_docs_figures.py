@@ -160,3 +160,16 @@ def test_word_budget():
     assert sum(site.values()) <= BUDGET["site"], f"the site has {sum(site.values())} words, budget {BUDGET['site']}: {site}"
     readme = words(ROOT / "README.md")
     assert readme <= BUDGET["README.md"], f"README.md has {readme} words, budget {BUDGET['README.md']}"
+
+
+@pytest.mark.parametrize("page", sorted(DOCS.glob("*.md")), ids=lambda page: page.name)
+def test_links_resolve_in_the_repository(page: Path):
+    """A page read in the repository (not on the site) finds every file it links: reports and
+    benchmarks are linked where they are committed (`../benchmarks/...`), and the site's hooks
+    (docs/hooks.py, `site_links`) point them at the published copies."""
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+        path = target.split("#")[0]
+        if path and "://" not in path and not (page.parent / path).exists():
+            broken.append(target)
+    assert not broken, f"{page.name} links what the repository lacks: {broken}"
