@@ -203,14 +203,16 @@ def train_locked(
 def check_resumed(plan: RunPlan, placement: devices.Placement, primary: bool) -> None:
     """Refuses a resume on a placement the run cannot continue on; config.json then says the
     layout it goes on with (--allow-relayout) and the evaluations' episodes (lowered on --resume)."""
-    run_dir = plan.run_dir
-    devices.check_resumable(run_dir.read_config(), placement, plan.out)
-    check_layout(run_dir.read_config(), placement, plan)
-    if primary and plan.allow_relayout:
-        run_dir.write_config({**run_dir.read_config(), **placement.describe()})
-    saved = run_dir.read_config()
-    if primary and {**PLAN_DEFAULTS, **saved["plan"]}["eval_episodes"] != plan.eval_episodes:
-        run_dir.write_config({**saved, "plan": {**saved["plan"], "eval_episodes": plan.eval_episodes}})
+    run_dir, saved = plan.run_dir, plan.run_dir.read_config()
+    devices.check_resumable(saved, placement, plan.out)
+    check_layout(saved, placement, plan)
+    if not primary:
+        return
+    updated = {**saved, **placement.describe()} if plan.allow_relayout else dict(saved)
+    if {**PLAN_DEFAULTS, **saved["plan"]}["eval_episodes"] != plan.eval_episodes:
+        updated["plan"] = {**saved["plan"], "eval_episodes": plan.eval_episodes}
+    if updated != saved:
+        run_dir.write_config(updated)
 
 
 def close_sinks(sinks: Sequence[Sink], summary: dict[str, Any], out: Path) -> None:
