@@ -42,8 +42,12 @@ from rpo_jax import envs, ppo  # noqa: E402
 
 
 def rpo_jax_phases(num_envs: int) -> dict[str, Callable[[], Any]]:
+    """`update_phases` on compare.py's work at `num_envs` environments."""
+    return update_phases(ppo.make_trainer(rpo_config(num_envs, num_envs * NUM_STEPS), envs.make_env(ENV)))
+
+
+def update_phases(trainer: ppo.Trainer) -> dict[str, Callable[[], Any]]:
     """name -> a call of that phase's own compiled program, on the state after one update."""
-    trainer = ppo.make_trainer(rpo_config(num_envs, num_envs * NUM_STEPS), envs.make_env(ENV))
     update = jax.jit(trainer.update)
     state, _ = update(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
     key = jax.random.PRNGKey(1)

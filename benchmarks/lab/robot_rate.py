@@ -4,47 +4,27 @@
 
 The raw rate: the task's envpool pool of the preset's environments stepped from plain Python with
 uniform random actions, one update's steps (num_envs x num_steps), no JAX. The phases, each a
-program of its own called on the state after one update (`phases.rpo_jax_phases`' way): the whole
+program of its own called on the state after one update: the whole
 update, the rollout (the policy's forward pass and the host step through the program's
-callbacks), values and GAE, and the minibatch epochs. Interleaved rounds; medians and ranges.
+callbacks), values and GAE, and the minibatch epochs (`phases.update_phases`). Interleaved rounds; medians and ranges.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import statistics
 import sys
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # this folder: phases.py
-from phases import interleaved, spread  # noqa: E402
+from phases import interleaved, spread, update_phases  # noqa: E402
 
 from rpo_jax import envs, ppo  # noqa: E402
 from rpo_jax.config import PRESETS  # noqa: E402
-
-
-def update_phases(trainer: ppo.Trainer) -> dict[str, functools.partial]:
-    """name -> a call of that phase's own compiled program, on the state after one update."""
-    update = jax.jit(trainer.update)
-    state, _ = update(jax.jit(trainer.init)(jax.random.PRNGKey(0)))
-    key = jax.random.PRNGKey(1)
-    rollout = jax.jit(lambda s: ppo.rollout(trainer, s.params, s.env_state, s.obs, key))
-    traj = rollout(state)[2]
-    make_batch = jax.jit(lambda s, traj: ppo.make_batch(trainer, s.params, traj, s.value_stats))
-    batch = make_batch(state, traj)[0]
-    epochs = jax.jit(lambda s, b: ppo.minibatch_epochs(trainer, s.hparams, s.params, s.opt_state, b, key))
-    return {
-        "whole update": functools.partial(update, state),
-        "rollout": functools.partial(rollout, state),
-        "values and GAE": functools.partial(make_batch, state, traj),
-        "minibatch epochs": functools.partial(epochs, state, batch),
-    }
 
 
 def raw_seconds(env: envs.HostEnv, num_envs: int, steps: int) -> float:
