@@ -38,6 +38,7 @@ from rpo_jax.envs.perturbations import (
     SIGNAL_AXES,
     Perturbed,
     check_axes,
+    check_known,
 )
 from rpo_jax.errors import UsageError
 
@@ -170,9 +171,7 @@ def host_grid_returns(env: envs.HostEnv, policy: ActFn, grid: Grid, episodes: in
     built with their physics scaled (`HostEnv.with_physics`: Gymnasium's MuJoCo tasks scale their
     models, envpool's robots their servos' gains), its sensing and acting axes applied in the
     program, every point from the same key (so the same episode starts)."""
-    for axis in grid.axes:
-        if axis not in AXES:
-            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
+    check_known(grid.axes)
     if PUSH in grid.axes:
         raise UsageError(f"{env.spec.name} steps on the host: a push needs its simulator inside the program")
     host_env_at(env, {axis: 1.0 for axis in grid.axes if axis in MODEL_AXES})  # refuses before any point runs

@@ -101,9 +101,7 @@ def simulated_model(env: Env) -> Any | None:
 def check_axes(env: Env, axes: tuple[str, ...]) -> None:
     """Refuses (UsageError, one line) an unknown axis, or one that `env` cannot apply or that
     would change nothing in its model."""
-    for axis in axes:
-        if axis not in AXES:
-            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
+    check_known(axes)
     needs_simulator = [axis for axis in axes if axis in SIMULATOR_AXES]
     model = simulated_model(env)
     if needs_simulator and model is None:
@@ -120,6 +118,13 @@ def can_touch(model: Any) -> bool:
     contype, conaffinity = jnp.asarray(model.geom_contype), jnp.asarray(model.geom_conaffinity)
     meet = bool(jnp.any((contype[:, None] & conaffinity[None, :]) != 0))
     return not int(model.opt.disableflags) & 1 << 4 and (meet or int(model.npair) > 0)
+
+
+def check_known(axes: tuple[str, ...]) -> None:
+    """Refuses (one line) an axis that is none of `AXES`."""
+    for axis in axes:
+        if axis not in AXES:
+            raise UsageError(f"unknown perturbation {axis!r}; the axes are {', '.join(AXES)}")
 
 
 def check_model(name: str, model: Any, axes: list[str] | tuple[str, ...]) -> None:
