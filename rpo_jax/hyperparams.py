@@ -1,12 +1,12 @@
 """The sweepable hyperparameters, declared once: the fields of `Hyperparams`.
 
-Training holds them as arrays in its state (a pytree: `rpo_jax.loss` registers the class), so
-that `jax.vmap` over a batch of them trains a whole grid in one compiled program. Each field's
-metadata says what the loss does with it (`doc`) and which algorithms' losses read it
-(`read_by`; every algorithm's when empty); its default is the `Config` field of the same name,
-and an algorithm whose loss does not read it trains with 0. What lists them derives from here:
-`SWEEPABLE`, a config's values (`Config.hyperparameters`), the algorithm table's reads, the
-runs' hyperparameters and labels, and results.csv's columns.
+Training holds them as arrays in its state, so that `jax.vmap` over a batch of them trains a
+whole grid in one compiled program: `Hyperparams` is a NamedTuple, which JAX takes as a pytree
+with no registration. Each field's annotation says what the loss does with it and which
+algorithms' losses read it (`read_by`; every algorithm's when empty); its default is the `Config`
+field of the same name, and an algorithm whose loss does not read it trains with 0. What lists
+them derives from here: `SWEEPABLE`, a config's values (`Config.hyperparameters`), the algorithm
+table's reads, the runs' hyperparameters and labels, and results.csv's columns.
 
 This module imports no JAX, so that the command line can show `--help` without loading it.
 """
@@ -14,26 +14,31 @@ This module imports no JAX, so that the command line can show `--help` without l
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+import typing
+from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
 
 if TYPE_CHECKING:
-    import jax
-
-
-def hyperparameter(doc: str, read_by: tuple[str, ...] = ()) -> Any:
-    """A field of `Hyperparams`: what the loss does with it, and the algorithms whose loss reads
-    it (every algorithm's when empty)."""
-    return dataclasses.field(metadata={"doc": doc, "read_by": read_by})
+    from jax import Array
+else:
+    Array = Any  # the annotations are read at run time (`read_by`), where JAX may not be loaded
 
 
 @dataclasses.dataclass(frozen=True)
-class Hyperparams:
+class Hyperparameter:
+    """What the loss does with a field of `Hyperparams`, and the algorithms whose loss reads it
+    (every algorithm's when empty)."""
+
+    doc: str
+    read_by: tuple[str, ...] = ()
+
+
+class Hyperparams(NamedTuple):
     """The sweepable hyperparameters of a run; each leaf is [] for one run, [R] for a batch of runs."""
 
-    rpo_alpha: jax.Array = hyperparameter("half-width of RPO's uniform perturbation of the policy location", ("rpo",))
-    ent_coef: jax.Array = hyperparameter("weight of the entropy bonus")
-    lr: jax.Array = hyperparameter("Adam's learning rate, where the schedule starts")
-    drac_coef: jax.Array = hyperparameter("weight of DrAC's policy and value regularisers", ("drac",))
+    rpo_alpha: Annotated[Array, Hyperparameter("half-width of RPO's uniform perturbation of the policy location", ("rpo",))]
+    ent_coef: Annotated[Array, Hyperparameter("weight of the entropy bonus")]
+    lr: Annotated[Array, Hyperparameter("Adam's learning rate, where the schedule starts")]
+    drac_coef: Annotated[Array, Hyperparameter("weight of DrAC's policy and value regularisers", ("drac",))]
 
     @classmethod
     def from_config(cls, config: Any, **swept: Any) -> Hyperparams:
@@ -50,7 +55,10 @@ class Hyperparams:
         return cls(**{name: jnp.broadcast_to(array, shape) for name, array in arrays.items()})
 
 
-SWEEPABLE = tuple(field.name for field in dataclasses.fields(Hyperparams))
+SWEEPABLE = Hyperparams._fields
+DECLARED: dict[str, Hyperparameter] = {
+    name: hint.__metadata__[0] for name, hint in typing.get_type_hints(Hyperparams, include_extras=True).items()
+}
 # Hyperparameters that act by their order of magnitude: population-based training draws them
 # log-uniformly (`rpo_jax.pbt`) and the report draws their schedules on a log axis.
 LOG_SCALE = ("rpo_alpha", "lr")
@@ -58,7 +66,7 @@ LOG_SCALE = ("rpo_alpha", "lr")
 
 def read_by(name: str) -> tuple[str, ...]:
     """The algorithms whose loss reads the hyperparameter `name`; () when every algorithm's does."""
-    return next(field.metadata["read_by"] for field in dataclasses.fields(Hyperparams) if field.name == name)
+    return DECLARED[name].read_by
 
 
 def explored_fields(text: str) -> list[tuple[str, str]]:

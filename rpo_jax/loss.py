@@ -16,13 +16,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from rpo_jax.config import Config
-from rpo_jax.hyperparams import SWEEPABLE, Hyperparams
+from rpo_jax.hyperparams import Hyperparams
 from rpo_jax.networks import Actor, Critic, TanhNormal, perturb_location, policy_distribution, policy_entropy
-
-# The declaration imports no JAX (the command line reads it); the loss, the first of the algorithm's
-# modules to read it, registers it as the pytree that training carries.
-jax.tree_util.register_dataclass(Hyperparams, data_fields=list(SWEEPABLE), meta_fields=[])
-
 
 # Steps of the GAE recursion per iteration of its loop. More let XLA fuse steps; on the CPU that
 # is no faster and rounds otherwise; untried on a GPU.

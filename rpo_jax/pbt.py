@@ -160,7 +160,7 @@ def explore(hparams: ppo.Hyperparams, moved: jax.Array, key: jax.Array, rule: Ru
             name: jnp.clip(getattr(hparams, name) * jax.random.choice(k, factors, (members,)), low, high)
             for (name, low, high), k in zip(rule.fields, factor_keys)
         }  # fmt: skip
-    return dataclasses.replace(hparams, **{name: jnp.where(moved, value, getattr(hparams, name)) for name, value in new.items()})
+    return hparams._replace(**{name: jnp.where(moved, value, getattr(hparams, name)) for name, value in new.items()})
 
 
 def step(state: ppo.TrainState, scores: jax.Array, keys: jax.Array, rule: Rule, members: int) -> tuple[ppo.TrainState, jax.Array]:

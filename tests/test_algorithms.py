@@ -97,7 +97,7 @@ def compiled_update(config: Config):
 
 def one_update(config: Config, **hparams):
     """Parameters after one update from the same initial state."""
-    values = dataclasses.replace(ppo.Hyperparams.from_config(config), **{
+    values = ppo.Hyperparams.from_config(config)._replace(**{
         name: jnp.asarray(value, jnp.float32) for name, value in hparams.items()
     })  # fmt: skip
     state, _ = compiled_update(config)(values)
@@ -151,8 +151,8 @@ def test_a_sweep_equals_its_runs_made_one_by_one():
     swept_state, swept_metrics = jax.jit(jax.vmap(train_fn))(keys, hparams)
     single = jax.jit(train_fn)
     for index, (alpha, seed) in enumerate(grid):
-        state, metrics = single(jax.random.PRNGKey(seed), dataclasses.replace(
-            ppo.Hyperparams.from_config(config), rpo_alpha=jnp.asarray(alpha, jnp.float32)
+        state, metrics = single(jax.random.PRNGKey(seed), ppo.Hyperparams.from_config(config)._replace(
+            rpo_alpha=jnp.asarray(alpha, jnp.float32)
         ))  # fmt: skip
         # Batched and unbatched programs may round matrix products differently on CPU.
         for a, b in zip(jax.tree.leaves((state.params, metrics)), jax.tree.leaves((swept_state.params, swept_metrics))):

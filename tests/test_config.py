@@ -35,7 +35,7 @@ def test_declared_choices_are_the_implemented_ones():
     assert choices("algo") == tuple(ALGORITHMS)
     assert set(choices("dist")) == {*DISTRIBUTIONS, TANH_NORMAL}
     assert set(choices("activation")) == set(ACTIVATIONS)
-    assert tuple(ppo.Hyperparams.__dataclass_fields__) == SWEEPABLE
+    assert ppo.Hyperparams._fields == SWEEPABLE
     hints = typing.get_type_hints(Config)
     assert all(name in hints for name in ALGORITHM_FIELDS)
     for algorithm in ALGORITHMS.values():
@@ -44,7 +44,7 @@ def test_declared_choices_are_the_implemented_ones():
 
 def test_the_sweepable_hyperparameters_are_declared_once():
     # Hyperparams' fields are the declaration; the lists of them derive from it.
-    assert SWEEPABLE == tuple(field.name for field in dataclasses.fields(Hyperparams))
+    assert SWEEPABLE == Hyperparams._fields
     assert results.ID_COLUMNS == ("experiment", "env", "variant", "algo", "dist", *SWEEPABLE, "seed")
     for name in SWEEPABLE:
         assert isinstance(getattr(Config(), name), float), name  # its default is Config's field

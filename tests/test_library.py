@@ -4,7 +4,6 @@ training, through load_policy and through the ONNX export), one spread (sample s
 the public names that dir() and type checkers see."""
 
 import ast
-import dataclasses
 import json
 import subprocess
 import sys
@@ -87,7 +86,7 @@ def test_make_policy_and_save_run_take_runs_trained_together_and_refuse_what_doe
         rpo_jax.make_policy(trainer, states)
     with pytest.raises(UsageError, match="already exists"):  # nothing the user wrote is overwritten
         rpo_jax.save_run(tmp_path / "two", trainer, states, metrics, env=ENV)
-    swept = states.replace(hparams=dataclasses.replace(states.hparams, lr=jnp.array([1e-3, 3e-4])))
+    swept = states.replace(hparams=states.hparams._replace(lr=jnp.array([1e-3, 3e-4])))
     with pytest.raises(ValueError, match="lr"):
         rpo_jax.save_run(tmp_path / "sweep", trainer, swept, metrics, env=ENV)
     assert not (tmp_path / "sweep").exists()

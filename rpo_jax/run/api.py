@@ -77,7 +77,7 @@ def check_saved(config: Config, state: ppo.TrainState, metrics: ppo.Metrics) -> 
     than the config's (a sweep: save each point's runs with a trainer of its config) or metrics
     of another number of updates or runs."""
     expected = ppo.Hyperparams.from_config(config)
-    for name, values in vars(state.hparams).items():
+    for name, values in state.hparams._asdict().items():
         wanted = np.float32(getattr(expected, name))
         if not np.all(np.asarray(values, np.float32) == wanted):
             raise ValueError(

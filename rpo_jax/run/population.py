@@ -80,7 +80,7 @@ def update_hyperparameters(placement: Placement, state: ppo.TrainState, runs: li
     """Gives each of `runs` the hyperparameters its member trains with now, as the state holds them."""
     hparams = placement.real_runs(state.hparams)
     for index, run in enumerate(runs):
-        run["hparams"] = {name: float(value[index]) for name, value in vars(hparams).items()}
+        run["hparams"] = {name: float(value[index]) for name, value in hparams._asdict().items()}
 
 
 def best_member(runs: list[dict[str, Any]]) -> int:
