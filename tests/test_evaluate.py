@@ -138,7 +138,8 @@ def test_evaluate_refuses_damaged_runs_in_one_line(finished, tmp_path, capsys, d
         ("ro/x.mp4", "error: --video ro/x.mp4: the directory {tmp}/ro is not writable (read-only file system or no permission)"),
         ("dangling.mp4", "error: --video dangling.mp4 already exists; choose a new file"),
         ("x.mp4", "error: --video: point_mass cannot be drawn; videos are of MuJoCo-based environments (cartpole, ballbalance, "
-         "brax/*, mjx-dmc/*) and of the host-side suites that draw themselves (gymnasium/*, gym/BipedalWalker-v3, dmc/*)"),
+         "brax/*, mjx-dmc/*, mjx-robot/*) and of the host-side suites that draw themselves (gymnasium/*, "
+         "gym/BipedalWalker-v3, dmc/*, robot/*)"),
     ],
 )  # fmt: skip
 def test_evaluate_refuses_a_video_it_cannot_make_before_evaluating(finished, tmp_path, capsys, monkeypatch, video, message):

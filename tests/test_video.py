@@ -278,6 +278,28 @@ def test_a_host_side_episode_is_drawn_as_the_encoder_reads_it_with_the_frames_on
     assert len(read_frames(tmp_path / "push.mp4")) == counted.LONG + 1
 
 
+class FastDrawnPointMassSim(CountedDrawnPointMassSim):
+    """The counted point mass stepping 100 times a second of simulated time."""
+
+    fps = 100.0
+
+
+def test_a_host_side_episode_is_drawn_at_most_max_fps_frames_a_simulated_second(monkeypatch):
+    fast = FastDrawnPointMassSim
+    monkeypatch.setattr(CountedDrawnPointMassSim, "drawn", 0)  # what counts the frames drawn
+    spec = dataclasses.replace(HOST_SPEC, max_episode_steps=fast.LONG)
+    env = HostEnv(spec, host_point_mass().make_simulators, lambda seed, width, height: fast(0, seed))
+    push = lambda obs, key, deterministic: jnp.full(obs.shape[:-1] + (1,), 0.7)
+    (episode,) = video.record(env, push, 1, jax.random.PRNGKey(0), deterministic=True)
+    every = DrawnPointMassSim(0, int(jax.random.randint(jax.random.PRNGKey(0), (), 0, 2**30)))  # host_episodes' seed
+    every.reset()  # the same episode, each state drawn
+    states = [every.frame()] + [(every.step(np.full(1, 0.7)), every.frame())[1] for _ in range(fast.LONG)]
+    # 100 steps a second against MAX_FPS 30: every third state, 14 of the 41, at 33.3 frames a second.
+    assert episode.steps == fast.LONG and episode.fps == pytest.approx(100 / 3)
+    assert len(episode.frames) == 14 and all(map(np.array_equal, episode.frames, states[::3]))
+    assert CountedDrawnPointMassSim.drawn == 14
+
+
 class ChancyDrawnPointMassSim(DrawnPointMassSim):
     """A drawn simulator that does not step the same way twice: its rewards are random."""
 
@@ -321,6 +343,27 @@ def test_a_deepmind_control_task_draws_itself_with_envpool():
     assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3) and frames[0].mean() > 30
     assert not np.array_equal(frames[0], frames[-1])  # the cart moved
     assert simulator.fps == 100.0  # dm_control's cartpole steps 10 ms
+
+
+@needs_gl
+@pytest.mark.parametrize("name, fps", [("robot/PandaPickCube?ctrl_dt=0.04", 25.0), ("robot/Go1JoystickFlatTerrain", 50.0)])
+def test_a_robot_draws_itself_with_envpool_at_its_settings(name, fps):
+    pytest.importorskip("envpool")
+    env = envs.make_env(name)
+    simulator = env.make_drawn(0, video.WIDTH, video.HEIGHT)
+    try:
+        first = simulator.reset()
+        frames = [simulator.frame()]
+        for _ in range(10):
+            obs, reward, terminated, truncated = simulator.step(np.full(env.spec.action_size, 0.5))
+        frames.append(simulator.frame())
+    finally:
+        simulator.close()
+    # The observation is the training's (a legged robot's state then its privileged state).
+    assert first.shape == obs.shape == (env.spec.observation_size,) and not (terminated or truncated)
+    assert frames[0].shape == (video.HEIGHT, video.WIDTH, 3) and frames[0].mean() > 30
+    assert not np.array_equal(frames[0], frames[-1])  # it moved
+    assert simulator.fps == fps  # one step a control step (ctrl_dt), the name's where it sets one
 
 
 def test_drawn_frames_draw_only_the_frames_read():

@@ -23,12 +23,9 @@ quadruped-walk); those extra keys are left out. Episodes end by truncation at 10
 
 from __future__ import annotations
 
-from typing import Any
-
-import numpy as np
 
 from rpo_jax.envs.dmc_tasks import ACTION_BOUNDS, EPISODE_STEPS, TASKS
-from rpo_jax.envs.envpool_pools import EnvpoolSimulators, gl_context
+from rpo_jax.envs.envpool_pools import DrawnEnvpoolTask, EnvpoolSimulators
 from rpo_jax.envs.host import HostEnv
 from rpo_jax.envs.protocol import EnvSpec, MissingExtraError
 
@@ -63,41 +60,6 @@ def simulators(task: str, num_envs: int, seed: int) -> EnvpoolSimulators:
     return EnvpoolSimulators(envpool_task_id(task), TASKS[task][0], [key for key, _ in TASKS[task][1]], num_envs, seed)
 
 
-class DrawnDmcTask:
-    """One task drawn by envpool's own MuJoCo renderer from the task's first camera
-    (`host.DrawnSimulator`), in the calling thread."""
-
-    def __init__(self, task: str, seed: int, width: int, height: int) -> None:
-        import envpool
-
-        gl_context().make_current()
-        self.keys = [key for key, _ in TASKS[task][1]]
-        self.pool = envpool.make_dm(
-            envpool_task_id(task), num_envs=1, num_threads=1, seed=seed,
-            render_mode="rgb_array", render_width=width, render_height=height, render_camera_id=0,
-        )  # fmt: skip
-        self.fps = 1.0 / CONTROL_SECONDS.get(task.split("-")[0], DEFAULT_CONTROL_SECONDS)
-        self.env_ids = np.zeros(1, int)
-
-    def _observe(self, observation: Any) -> np.ndarray:
-        return np.concatenate([np.asarray(getattr(observation, key)).reshape(-1) for key in self.keys])
-
-    def reset(self) -> np.ndarray:
-        return self._observe(self.pool.reset(self.env_ids).observation)
-
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
-        ts = self.pool.step(np.asarray(action, np.float64)[None], self.env_ids)
-        last, discount = bool(ts.step_type[0] == 2), float(ts.discount[0])  # dm_env.StepType.LAST
-        return self._observe(ts.observation), float(ts.reward[0]), last and discount == 0, last and discount > 0
-
-    def frame(self) -> np.ndarray:
-        gl_context().make_current()  # MuJoCo's renderers make theirs current meanwhile
-        return self.pool.render()[0]
-
-    def close(self) -> None:
-        self.pool.close()
-
-
 def make(task: str) -> HostEnv:
     try:
         import envpool  # noqa: F401
@@ -105,5 +67,8 @@ def make(task: str) -> HostEnv:
         raise MissingExtraError(f"dmc/{task}", "envpool", "dmc") from None
     return HostEnv(
         SPECS[f"dmc/{task}"], lambda num_envs, seed: simulators(task, num_envs, seed),
-        lambda seed, width, height: DrawnDmcTask(task, seed, width, height),
+        lambda seed, width, height: DrawnEnvpoolTask(
+            envpool_task_id(task), [key for key, _ in TASKS[task][1]], seed, width, height,
+            fps=1.0 / CONTROL_SECONDS.get(task.split("-")[0], DEFAULT_CONTROL_SECONDS),
+        ),
     )  # fmt: skip

@@ -159,6 +159,44 @@ class EnvpoolSimulators:
         self.pool.close()
 
 
+class DrawnEnvpoolTask:
+    """One copy of a task (envpool's id `task_id`, its observation the arrays `obs_keys` names,
+    `options` its settings) drawn by envpool's own MuJoCo renderer from camera `camera_id` (-1:
+    MuJoCo's free camera), `fps` steps a second of simulated time (`host.DrawnSimulator`), in the
+    calling thread."""
+
+    def __init__(
+        self, task_id: str, obs_keys: Sequence[str], seed: int, width: int, height: int, fps: float,
+        options: Mapping[str, Any] | None = None, camera_id: int = 0,
+    ) -> None:  # fmt: skip
+        import envpool
+
+        gl_context().make_current()
+        self.keys, self.fps, self.env_ids = list(obs_keys), fps, np.zeros(1, int)
+        self.pool = envpool.make_dm(
+            task_id, num_envs=1, num_threads=1, seed=seed, render_mode="rgb_array", render_width=width,
+            render_height=height, render_camera_id=camera_id, **(options or {}),
+        )  # fmt: skip
+
+    def _observe(self, observation: Any) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(observation, key)).reshape(-1) for key in self.keys])
+
+    def reset(self) -> np.ndarray:
+        return self._observe(self.pool.reset(self.env_ids).observation)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool]:
+        ts = self.pool.step(np.asarray(action, np.float64)[None], self.env_ids)
+        last, discount = bool(ts.step_type[0] == 2), float(ts.discount[0])  # dm_env.StepType.LAST
+        return self._observe(ts.observation), float(ts.reward[0]), last and discount == 0, last and discount > 0
+
+    def frame(self) -> np.ndarray:
+        gl_context().make_current()  # MuJoCo's renderers make theirs current meanwhile
+        return self.pool.render()[0]
+
+    def close(self) -> None:
+        self.pool.close()
+
+
 @functools.cache
 def gl_context() -> Any:
     """An OpenGL context of the installed MuJoCo's, kept for the process's life, which envpool's

@@ -90,7 +90,7 @@ def make(name: str) -> HostEnv:
 
 
 def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
-    from rpo_jax.envs.envpool_pools import EnvpoolSimulators
+    from rpo_jax.envs.envpool_pools import DrawnEnvpoolTask, EnvpoolSimulators
 
     facts = TASKS[task]
     keys = ["state", "privileged_state"] if facts.privileged_size else ["state"]
@@ -112,6 +112,10 @@ def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
         spec(task, name),
         lambda num_envs, seed: EnvpoolSimulators(
             f"{task}-v1", facts.action_size, keys, num_envs, seed, options, facts.megabytes, metrics
+        ),
+        # Drawn from envpool's default view of the task (camera -1), with the run's settings.
+        lambda seed, width, height: DrawnEnvpoolTask(
+            f"{task}-v1", keys, seed, width, height, 1.0 / options.get("ctrl_dt", _settings(task)["ctrl_dt"]), options, -1
         ),
         with_physics=with_physics,
         task_metrics=metrics,

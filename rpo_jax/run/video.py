@@ -7,9 +7,10 @@ Two ways of drawing, chosen by the environment:
   the episodes run as one jitted program that records the joint positions, and the host draws
   each with MuJoCo's renderer (`mujoco.Renderer`, offscreen) from the model's first camera, on
   the environment's `render_model` (a copy dressed with light, floor and colours) where it has one.
-- host-side suites that draw themselves (`HostEnv.make_drawn`: Gymnasium's tasks and envpool's
-  DeepMind Control): one simulator steps the policy on the host, and a fresh one of the same
-  seed plays the episode's actions again, its own rgb_array rendering giving the frames.
+- host-side suites that draw themselves (`HostEnv.make_drawn`: Gymnasium's tasks, envpool's
+  DeepMind Control and Playground's robots): one simulator steps the policy on the host, and a
+  fresh one of the same seed plays the episode's actions again, its own rgb_array rendering
+  giving the frames.
 
 Either way an episode keeps what draws it again (joint positions, or a seed and actions), and
 its frames (`DrawnFrames`) are drawn as the encoder reads them, never all held at once.
@@ -47,7 +48,7 @@ from rpo_jax.run.directory import VIDEOS_DIR
 from rpo_jax.run.files import written_whole
 
 WIDTH, HEIGHT = 320, 240
-MAX_FPS = 30  # frames drawn per second of simulated time, for the MuJoCo-based JAX environments
+MAX_FPS = 30  # at most, frames drawn per second of simulated time
 
 
 @dataclasses.dataclass
@@ -77,7 +78,8 @@ def check_video(env: envs.Env, flag: str) -> None:
     if not (isinstance(env, envs.Renderable) or drawn_by_host(env)):
         raise UsageError(
             f"{flag}: {env.spec.name} cannot be drawn; videos are of MuJoCo-based environments (cartpole, ballbalance, "
-            "brax/*, mjx-dmc/*) and of the host-side suites that draw themselves (gymnasium/*, gym/BipedalWalker-v3, dmc/*)"
+            "brax/*, mjx-dmc/*, mjx-robot/*) and of the host-side suites that draw themselves (gymnasium/*, "
+            "gym/BipedalWalker-v3, dmc/*, robot/*)"
         )
     try:
         import imageio.v2  # noqa: F401
@@ -179,7 +181,7 @@ def position_rollout(
 def drawn_episodes(env: envs.Env, qpos: np.ndarray, rewards: np.ndarray, ended: np.ndarray) -> list[Episode]:
     """The episodes of `position_rollout`'s arrays, each cut at its end and drawn at most
     `MAX_FPS` frames per second of simulated time: a frame costs about 15 ms on a CPU whatever
-    its size, so Cartpole's 60 steps a second are drawn every second step."""
+    its size (a robot's meshes, 0.5 s), so Cartpole's 60 steps a second are drawn every second step."""
     stride = max(1, round(1.0 / (env.control_dt * MAX_FPS)))
     result = []
     for index in range(qpos.shape[1]):
@@ -201,7 +203,8 @@ def host_episodes(env: envs.HostEnv, act: HostAct, episodes: int, key: jax.Array
 
 def host_episode(env: envs.HostEnv, act: HostAct, seed: int, key: jax.Array) -> Episode:
     """One episode of a host-side suite's drawn simulator, to its end or the time limit, played
-    without drawing; its frames are drawn when read (`replayed_frames`)."""
+    without drawing; its frames are drawn when read (`replayed_frames`), at most `MAX_FPS` a
+    second of simulated time, as the MuJoCo-based JAX environments' are (`drawn_episodes`)."""
     simulator = env.make_drawn(seed, WIDTH, HEIGHT)
     try:
         obs, actions, rewards = simulator.reset(), [], []
@@ -214,25 +217,28 @@ def host_episode(env: envs.HostEnv, act: HostAct, seed: int, key: jax.Array) -> 
         fps = simulator.fps
     finally:
         simulator.close()
-    frames = DrawnFrames(len(actions) + 1, lambda start, stop: replayed_frames(env, seed, actions, rewards, start, stop))
-    return Episode(frames, sum(rewards), fps)
+    stride = max(1, round(fps / MAX_FPS))
+    count = len(range(0, len(actions) + 1, stride))
+    frames = DrawnFrames(count, lambda start, stop: replayed_frames(env, seed, actions, rewards, start, stop, stride))
+    return Episode(frames, sum(rewards), fps / stride, len(actions))
 
 
 def replayed_frames(
-    env: envs.HostEnv, seed: int, actions: list[np.ndarray], rewards: list[float], start: int, stop: int
+    env: envs.HostEnv, seed: int, actions: list[np.ndarray], rewards: list[float], start: int, stop: int, stride: int = 1
 ) -> Iterator[np.ndarray]:  # fmt: skip
-    """Frames `start` to `stop - 1` of a host-side episode (frame 0 after the reset, frame i after
-    action i - 1), drawn by a fresh simulator of its seed playing its actions again: the suites
-    step deterministically, and a replay earning other rewards than the episode is an error."""
+    """Frames `start` to `stop - 1` of a host-side episode drawn every `stride`-th state (frame i
+    after action i x stride - 1; frame 0 after the reset), drawn by a fresh simulator of its seed
+    playing its actions again: the suites step deterministically, and a replay earning other
+    rewards than the episode is an error."""
     simulator = env.make_drawn(seed, WIDTH, HEIGHT)
     try:
         simulator.reset()
-        for index in range(stop):
+        for index in range(min((stop - 1) * stride, len(actions)) + 1):
             if index:
                 _, reward, _, _ = simulator.step(actions[index - 1])
                 if float(reward) != rewards[index - 1]:
                     raise RuntimeError(f"{env.spec.name}: replaying an episode to draw it gave step {index} another reward")
-            if index >= start:
+            if index % stride == 0 and index >= start * stride:
                 yield simulator.frame()
     finally:
         simulator.close()
