@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from rpo_jax.report import compose, statistics
+from rpo_jax.report import compose, statistics, tables
 from rpo_jax.report import results
 
 RPO = {"dmc/walker-walk": [100.0, 200.0, 300.0, 400.0], "cartpole": [50.0, 100.0, 150.0, 200.0]}
@@ -194,3 +194,22 @@ def test_a_report_of_environments_without_a_score_range_has_no_empty_table(tmp_p
     text = compose.build(tmp_path, [tmp_path]).read_text()
     assert "No score across environments: none of test/point_mass has a fixed range." in text
     assert "| env | low | high | from |" not in text
+
+
+def test_the_tasks_own_metrics_are_tabulated_from_training_and_the_last_evaluation(tmp_path):
+    rows = rows_of("ppo", "ppo", {"robot/PandaPickCube": [1.0, 2.0, 3.0]}) + rows_of("rpo", "rpo", {"cartpole": [5.0]})
+    for row in rows[:30]:
+        row["task/reward_lifted"] = row["seed"] / 10 if row["update"] == 10 else 0.0  # the last 10%: update 10
+        if row["update"] in (5.0, 10.0):  # evaluated twice; the last counts
+            row["eval_task/reward_success"] = 2.0 * row["seed"] * (row["update"] == 10)
+            row["eval_task/reward_success/share"] = (row["seed"] - 1) / 2
+    results.write_results(tmp_path, rows)
+    read = results.read_results(tmp_path)
+    assert "eval_task/reward_success" in read[4] and "eval_task/reward_success" not in read[0]  # blank: none
+    text = "\n".join(tables.task_tables(compose.summarise(read), ["robot/PandaPickCube", "cartpole"], ["ppo", "rpo"]))
+    lines = {line.split(" | ")[0]: line.split(" | ")[1:] for line in text.splitlines() if line.startswith("| ")}
+    assert list(lines) == ["| metric", "| eval_task/reward_success", "| eval_task/reward_success/share", "| task/reward_lifted"]
+    assert lines["| eval_task/reward_success"][0].startswith("4.00 ± 2.00 [")  # seeds' 2, 4, 6
+    assert lines["| eval_task/reward_success/share"][0].startswith("0.50 ± 0.50 [")  # 0, 0.5, 1
+    assert lines["| task/reward_lifted"] == ["0.20 ± 0.10 [-0.05, 0.45]", " |"]  # ± t(0.975, 2) x 0.1 / sqrt(3); no rpo
+    assert "**robot/PandaPickCube**" in text and "cartpole" not in text  # a task that reports none: no table

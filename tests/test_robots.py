@@ -220,6 +220,8 @@ def test_the_pandas_reward_terms_are_logged_in_training_and_summed_per_episode_b
     row = json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
     assert row["task/reward_no_floor_collision"] == 1.0 and 0 < row["task/reward_gripper_box"] < 1  # step means
     assert row["eval_task/reward_no_floor_collision"] == 150.0 and "eval_task/reward_success" in row  # episode sums
+    # The share of episodes in which the term was non-zero: a success rate for reward_success.
+    assert row["eval_task/reward_no_floor_collision/share"] == 1.0 and row["eval_task/reward_success/share"] == 0.0
     assert evaluate.main([str(out), "--episodes", "2"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     # The port's episodes are 150 steps, the gripper never touches the floor: 150 a step's 1.

@@ -40,7 +40,7 @@ from rpo_jax.run.directory import (
 from rpo_jax.run.files import write_text
 from rpo_jax.report.results import EVAL_COLUMN, read_results
 from rpo_jax.run.options import parse
-from rpo_jax.scores import final_return, kept_fraction, row_returns, sample_std, tail_mean
+from rpo_jax.scores import final_return, kept_fraction, row_returns, tail_mean
 
 REPORT_FILE = "report.md"
 FIGURES_DIR = "figures"
@@ -107,15 +107,6 @@ def _title(experiments: Sequence[str], variants: Sequence[str], envs: Sequence[s
     return f"{compared} on {on}{beside} ({', '.join(experiments)} experiment)"
 
 
-def _spread(values: np.ndarray) -> dict[str, float]:
-    """Mean, sample std (NaN for one seed) and the 95% Student t interval of the mean."""
-    values = values[~np.isnan(values)]  # a run in which no episode ended has no return
-    if not len(values):
-        return {"mean": math.nan, "std": math.nan, "low": math.nan, "high": math.nan, "n": 0}
-    low, high = statistics.mean_interval(values)
-    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high, "n": len(values)}
-
-
 def _final_return(run: Sequence[dict]) -> float:
     """A run's final return (`scores.final_return`); NaN where no episode ended in it."""
     final = final_return(row_returns(run))
@@ -136,9 +127,9 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
         entropies = np.array([tail_mean([row["policy_entropy"] for row in run]) for run in seeds.values()])
         length = min(len(run) for run in seeds.values())
         mean_curve = np.mean([[row["episode_return"] for row in run[:length]] for run in seeds.values()], axis=0)
-        returns, entropy = _spread(finals), _spread(entropies)
+        returns, entropy = statistics.spread(finals), statistics.spread(entropies)
         evaluations = [[row[EVAL_COLUMN] for row in run if EVAL_COLUMN in row] for run in seeds.values()]
-        evaluated = _spread(np.array([run[-1] for run in evaluations])) if all(evaluations) else {}
+        evaluated = statistics.spread(np.array([run[-1] for run in evaluations])) if all(evaluations) else {}
         summary[key] = {
             **{f"eval_{name}": value for name, value in evaluated.items()},
             "finals": finals[~np.isnan(finals)],  # a run without a return counts in no score
@@ -146,6 +137,7 @@ def summarise(rows: Sequence[dict]) -> dict[tuple[str, str], dict]:
             **{f"entropy_{name}": value for name, value in entropy.items()},
             "seeds": len(seeds),
             "env_steps": max(run[-1]["env_steps"] for run in seeds.values()),
+            "task": tables.task_spreads(seeds),
             "kept": kept_fraction(mean_curve),
             "kept_worst_seed": min(
                 (kept_fraction([row["episode_return"] for row in run]) for run in seeds.values()),
@@ -285,6 +277,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
         f"{'/'.join(f'{int(s):,}' for s in steps)} environment steps per run).",
         "",
         *tables.result_tables(summary, envs, variants),
+        *tables.task_tables(summary, envs, variants),
         *reference.section(summary, published, algos, tables.cell),
         *tables.aggregate_section(envs, aggregates(scores, variants), improvements(scores, variants, algos)),
         *populations.section(members, jobs),
@@ -297,7 +290,7 @@ def build(out: Path, directories: Sequence[Path], reference_file: Path | None = 
 
 
 def _final_returns(runs: list[list[dict]]) -> dict:
-    spread = _spread(np.array([_final_return(run) for run in runs]))
+    spread = statistics.spread(np.array([_final_return(run) for run in runs]))
     return {**{f"return_{name}": value for name, value in spread.items()}, "seeds": len(runs)}
 
 

@@ -24,12 +24,22 @@ METRIC_COLUMNS = (
 EVAL_COLUMN = "eval_return"
 COLUMNS = ID_COLUMNS + METRIC_COLUMNS + (EVAL_COLUMN,)
 TEXT_COLUMNS = ("experiment", "env", "variant", "algo", "dist")
+# The task's own metrics, after COLUMNS where a task reports them (a robot's reward terms): in
+# training (`task/<name>`, a step's mean over the rollout) and at evaluations (`eval_task/<name>`,
+# summed over an episode, and `eval_task/<name>/share`, the share of episodes where non-zero).
+TASK_PREFIXES = ("task/", "eval_task/")
+
+
+def task_columns(rows: Iterable[dict]) -> list[str]:
+    """The task's metrics' columns that `rows` hold, sorted."""
+    return sorted({name for row in rows for name in row if name.startswith(TASK_PREFIXES)})
 
 
 def write_results(out: Path, rows: Iterable[dict]) -> None:
     """results.csv through a temporary file, so a crash never leaves half of it."""
+    rows = list(rows)
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n", restval="")
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS + tuple(task_columns(rows)), lineterminator="\n", restval="")
     writer.writeheader()
     writer.writerows(rows)
     write_text(out / RESULTS_FILE, buffer.getvalue())
@@ -53,6 +63,7 @@ def run_rows(experiment: str, env: str, variant: Callable[[dict], str], director
             "seed": metrics["seed"],
             **{name: metrics[name] for name in METRIC_COLUMNS},
             **({EVAL_COLUMN: metrics["eval_return"]} if "eval_return" in metrics else {}),
+            **{name: value for name, value in metrics.items() if name.startswith(TASK_PREFIXES)},
         }  # fmt: skip
         for metrics in run.read_metrics()
     ]
@@ -73,9 +84,11 @@ def read_results(directory: Path) -> list[dict]:
     except (UnicodeDecodeError, csv.Error) as error:
         raise UsageError(f"{path} is not a CSV text file ({error}); rpo_jax.experiment writes it") from None
     for line, row in enumerate(rows, start=2):
-        if not row.get(EVAL_COLUMN):
-            row.pop(EVAL_COLUMN, None)
-        for name in (*ID_COLUMNS, *METRIC_COLUMNS, *([EVAL_COLUMN] if EVAL_COLUMN in row else [])):
+        optional = [name for name in row if name == EVAL_COLUMN or name.startswith(TASK_PREFIXES)]
+        for name in optional:  # blank where the row has none
+            if not row[name]:
+                del row[name]
+        for name in (*ID_COLUMNS, *METRIC_COLUMNS, *(name for name in optional if name in row)):
             if name not in TEXT_COLUMNS:
                 try:
                     row[name] = float(row[name])

@@ -24,6 +24,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from rpo_jax.scores import sample_std
+
 RESAMPLES = 2000
 CONFIDENCE = 0.95
 
@@ -153,6 +155,17 @@ def student_t_intervals(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean = values.mean(axis=0)
     half = stats.t.ppf(1 - TAIL, n - 1) * values.std(axis=0, ddof=1) / math.sqrt(n)
     return mean - half, mean + half
+
+
+def spread(values: np.ndarray) -> dict[str, float]:
+    """Mean, sample std (NaN for one seed), the 95% Student t interval of the mean and the count
+    of one environment's per-seed values, those that are NaN (a run in which no episode ended has
+    no return) left out."""
+    values = values[~np.isnan(values)]
+    if not len(values):
+        return {"mean": math.nan, "std": math.nan, "low": math.nan, "high": math.nan, "n": 0}
+    low, high = mean_interval(values)
+    return {"mean": float(np.mean(values)), "std": float(sample_std(values)), "low": low, "high": high, "n": len(values)}
 
 
 def mean_interval(values: np.ndarray) -> tuple[float, float]:

@@ -1,14 +1,17 @@
 """The report's tables (Markdown), from the statistics `rpo_jax.report` computes: final return,
-entropy, late training and evaluation per environment and variant, and the comparison across
-environments. Every cell shows its spread: mean ± sample std over seeds [95% interval]."""
+entropy, late training, evaluation and the task's own metrics per environment and variant, and
+the comparison across environments. Every cell shows its spread: mean ± sample std over seeds [95% interval]."""
 
 from __future__ import annotations
 
 import math
 from typing import Sequence
 
+import numpy as np
+
 from rpo_jax.report import statistics
-from rpo_jax.scores import with_spread
+from rpo_jax.report.results import task_columns
+from rpo_jax.scores import tail_mean, with_spread
 
 
 def cell(stats: dict, name: str, digits: int = 2) -> str:
@@ -148,3 +151,50 @@ def aggregate_section(
             "",
         ]
     return lines
+
+
+def task_spreads(seeds: dict[float, list[dict]]) -> dict[str, dict[str, float]]:
+    """Each of the task's own metrics over the seeds of one environment and variant
+    (`statistics.spread`): training's (`task/<name>`) averaged over the last 10% of the logged
+    updates, as the final return is; the last evaluation's (`eval_task/...`) where every seed was
+    evaluated with it."""
+    spreads = {}
+    for name in task_columns(row for run in seeds.values() for row in run):
+        values = [[row[name] for row in run if name in row] for run in seeds.values()]
+        if name.startswith("task/"):
+            spreads[name] = statistics.spread(np.array([tail_mean(run) for run in values]))
+        elif all(values):
+            spreads[name] = statistics.spread(np.array([run[-1] for run in values]))
+    return spreads
+
+
+def task_tables(summary: dict, envs: list[str], variants: list[str]) -> list[str]:
+    """A table per environment whose task reports its own metrics (a robot's reward terms): a
+    row per metric, a column per variant."""
+    lines = []
+    for env in envs:
+        names = sorted({name for (where, _), stats in summary.items() if where == env for name in stats["task"]})
+        if not names:
+            continue
+        lines += [] if lines else [
+            "## The task's own metrics",
+            "",
+            "What the task reports beside its reward, mean ± sample std over seeds [95% CI]: `eval_task/NAME`, "
+            "summed over an episode at the last evaluation, and `.../share`, the share of its episodes in which "
+            "it was non-zero (a success rate where NAME is success); `task/NAME`, a step's mean in training, "
+            "over the last 10% of the logged updates.",
+            "",
+        ]  # fmt: skip
+        lines += [f"**{env}**", "", "| metric | " + " | ".join(variants) + " |", "|---" * (len(variants) + 1) + "|"]
+        for name in names:
+            cells = [spread_cell(summary.get((env, variant), {}).get("task", {}).get(name)) for variant in variants]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def spread_cell(spread: dict[str, float] | None) -> str:
+    """`cell` of one `statistics.spread`; blank for none."""
+    if not spread:
+        return ""
+    return cell({**{f"value_{part}": value for part, value in spread.items()}, "seeds": spread["n"]}, "value")

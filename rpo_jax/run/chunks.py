@@ -303,11 +303,14 @@ def compile_runs(plan: RunPlan, env: envs.Env, runs: list[dict[str, Any]], place
 
 
 def evaluate_after_chunk(compiled: Compiled, state: ppo.TrainState) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Each run's evaluation return on `state`, and each of the task's metrics summed over an
-    episode, its mean over the episodes {name: [runs]}."""
+    """Each run's evaluation return on `state`, and of each of the task's metrics summed over an
+    episode, its mean over the episodes and (as `<name>/share`) the share of episodes in which it
+    was non-zero, a success rate where the metric is success {name: [runs]}."""
     inputs = compiled.placement.real_runs(eval_program.evaluation_inputs(compiled.trainer, state))
     _, means, task_metrics = jax.device_get(compiled.run_eval(inputs, compiled.eval_keys))
-    return np.asarray(means), {name: np.asarray(sums).mean(-1) for name, sums in task_metrics.items()}
+    sums = {name: np.asarray(value) for name, value in task_metrics.items()}
+    shares = {f"{name}/share": (value != 0).mean(-1) for name, value in sums.items()}
+    return np.asarray(means), {**{name: value.mean(-1) for name, value in sums.items()}, **shares}
 
 
 def after_chunk(

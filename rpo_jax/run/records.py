@@ -35,7 +35,8 @@ def logged_rows(
     """metrics.jsonl's rows of one chunk: every `log_every`-th update and the last, every run.
     With `eval_returns` (one per run, after the chunk's last update) that update is logged too,
     its rows with `eval_return` (and `eval_task/<name>`, each of `eval_task_metrics`: the task's
-    metric summed over an episode, its mean over the evaluation's); rows of runs without
+    metric summed over an episode, its mean over the evaluation's, and `eval_task/<name>/share`,
+    the share of episodes in which it was non-zero); rows of runs without
     evaluation have no such field. `videos`
     (one path per run, in the run directory) likewise, as `video`."""
     rows = []
