@@ -114,6 +114,7 @@ def test_throughput_of_a_host_side_task_with_seeds_writes_every_figure(tmp_path)
     assert "2 seeds in one program" in printed and "their 2 pools stepped alone" in printed
 
 
+@pytest.mark.slow  # a benchmark script's run (13-38 s); every script's --help stays in the default suite
 def test_seeds_times_k_seeds_against_one():
     done = run("seeds.py", "--env", POINT_MASS, "--seeds", "2", "--num-envs", "4", "--total-timesteps", "256", "--repeats", "1")
     result = json.loads(done.stdout)
@@ -121,6 +122,7 @@ def test_seeds_times_k_seeds_against_one():
     assert result["ratio"] == pytest.approx(result["seconds_2_seeds"] / result["seconds_1_seed"])
 
 
+@pytest.mark.slow  # a benchmark script's run (13-38 s); every script's --help stays in the default suite
 def test_scaling_runs_both_placements_over_a_cpu_made_two_devices(tmp_path):
     out = tmp_path / "scaling.json"
     run(
@@ -132,6 +134,7 @@ def test_scaling_runs_both_placements_over_a_cpu_made_two_devices(tmp_path):
     assert all(row["sps"] > 0 for row in rows)
 
 
+@pytest.mark.slow  # a benchmark script's run (13-38 s); every script's --help stays in the default suite
 def test_the_purejaxrl_style_loop_trains_alone_on_the_compared_work():
     result = last_json(run("purejaxrl_loop.py", "--num-envs", "8", "--timesteps", "256").stdout)
     assert result["timesteps"] == 256 and result["sps"] > 0 and result["compile_seconds"] > 0
@@ -212,6 +215,7 @@ def test_final_return_window_gives_the_committed_figures_again():
     assert row in printed
 
 
+@pytest.mark.slow  # a benchmark script's run (13-38 s); every script's --help stays in the default suite
 def test_metrics_from_tensorboard_rebuilds_the_rows_a_run_lost(tmp_path):
     out = tmp_path / "run"
     train = [sys.executable, "-m", "rpo_jax.train", "--env", POINT_MASS, "--num-envs", "4", "--num-steps", "8",

@@ -139,7 +139,10 @@ def test_merged_normaliser_statistics_equal_those_of_the_whole_batch(gradients):
     [
         pytest.param(["--num-seeds", "3", "--devices", "2"], marks=pytest.mark.slow),
         ["--devices", "2", "--shard-envs"],
-        ["--num-seeds", "3", "--devices", "3", "--split-epochs"],
+        # Slow, for the suite's time (30-40 s): the epochs placement's resume is also
+        # test_host_side_runs_sharing_pools_resume_with_split_epochs's (slow too) and its training
+        # test_cpu_devices_split_the_cpu_for_split_runs's.
+        pytest.param(["--num-seeds", "3", "--devices", "3", "--split-epochs"], marks=pytest.mark.slow),
     ],
     ids=["runs", "envs", "epochs"],
 )
@@ -198,6 +201,7 @@ def test_host_side_runs_sharing_pools_with_split_epochs_train_as_their_groups_on
     assert not all(np.allclose(own, shared_run[1], rtol=1e-3) for own, shared_run in zip(alone, first, strict=True))
 
 
+@pytest.mark.slow  # 16-18 s; the shared pools' training stays in the default suite (the test above)
 def test_host_side_runs_sharing_pools_resume_with_split_epochs(tmp_path):
     # The resumed runs restart their episodes group by group, as their pools are shared.
     flags = ["--num-seeds", "3", "--devices", "2", "--split-epochs", "--shared-pools"]

@@ -300,6 +300,7 @@ def test_a_resume_on_another_device_count_is_refused_unless_allowed(tmp_path, ca
     assert json.loads((out / SUMMARY_FILE).read_text())["devices"] == 1
 
 
+@pytest.mark.slow  # 20-28 s; the same refusal through train stays in the default suite (the test above)
 def test_an_experiment_resumed_on_another_device_count_is_refused_unless_allowed(tmp_path, capsys):
     out = tmp_path / "experiment"
     flags = ["ppo-vs-rpo", "--envs", "point_mass:PointMass", "--jobs", "rpo", *TINY_FLAGS_ANY_ENV, "--num-seeds", "2",
