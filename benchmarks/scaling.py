@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     from rpo_jax import envs
-    from rpo_jax.config import PRESETS
+    from rpo_jax.envs.recipes import PRESETS
     from rpo_jax.parallel import devices
 
     devices.split_cpu(args.cpu_devices)

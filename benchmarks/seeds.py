@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rpo_jax.config import PRESETS, Config
+from rpo_jax.config import Config
+from rpo_jax.envs.recipes import PRESETS
 
 # JAX and the environments are imported where they are used, so that --help answers at once.
 

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rpo_jax.config import PRESETS
+from rpo_jax.envs.recipes import PRESETS
 
 if TYPE_CHECKING:
     from rpo_jax.envs.host import HostEnv

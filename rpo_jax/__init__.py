@@ -9,7 +9,7 @@ __version__ = "0.3.0"  # the one declaration: pyproject.toml reads it
 
 # Imported on first use, so that `import rpo_jax` (and every command's --help) loads no JAX.
 _EXPORTS = {
-    "Config": "rpo_jax.config", "PRESETS": "rpo_jax.config", "ALGORITHMS": "rpo_jax.config",
+    "Config": "rpo_jax.config", "PRESETS": "rpo_jax.envs.recipes", "ALGORITHMS": "rpo_jax.config",
     "make_train": "rpo_jax.ppo", "make_trainer": "rpo_jax.ppo", "load_policy": "rpo_jax.run.saved_policy",
     "make_policy": "rpo_jax.run.saved_policy", "save_run": "rpo_jax.run.api", "train_runs": "rpo_jax.run.api",
     "RunSpec": "rpo_jax.run.options", "register_env": "rpo_jax.envs", "make_env": "rpo_jax.envs", "check_env": "rpo_jax.envs",
@@ -19,7 +19,7 @@ _EXPORTS = {
 # (tests/test_library.py checks that the two lists agree).
 if TYPE_CHECKING:  # `X as X`: re-exported, for type checkers
     from rpo_jax.config import ALGORITHMS as ALGORITHMS
-    from rpo_jax.config import PRESETS as PRESETS
+    from rpo_jax.envs.recipes import PRESETS as PRESETS
     from rpo_jax.config import Config as Config
     from rpo_jax.envs import check_env as check_env
     from rpo_jax.envs import make_env as make_env

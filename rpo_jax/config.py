@@ -1,6 +1,7 @@
 """The configuration of a training run and the table of algorithms, in one place.
 
-`Config` holds every hyperparameter of one run; `PRESETS` are named starting points; the
+`Config` holds every hyperparameter of one run; `PAPER_PRESETS` are the paper's starting points
+(the suites add their own: `rpo_jax.envs.recipes.PRESETS` holds them all); the
 algorithms (`ALGORITHMS`: ppo, rpo, rad, drac) say which of the algorithm-specific fields each
 one reads. The library (`rpo_jax.make_train`) and the command line use the same table and the
 same default, RPO with alpha 0.5.
@@ -289,7 +290,7 @@ def check_applies(algo: str, names: typing.Iterable[str], label: typing.Callable
             raise UsageError(f"{label(name)} applies to --algo {owners} only, not {algo}")
 
 
-PRESETS: dict[str, Config] = {
+PAPER_PRESETS: dict[str, Config] = {
     # CleanRL's ppo_continuous_action / rpo_continuous_action, as in the paper.
     "paper": Config(
         total_timesteps=8_000_000, num_envs=1, num_steps=2048, num_minibatches=32,
@@ -310,64 +311,7 @@ PRESETS: dict[str, Config] = {
 # rl_games' IsaacGym BallBalance config: Cartpole's with an MLP [128, 64, 32], 4096 environments
 # in minibatches of 8192 and value normalisation (without it BallBalance plateaus near 245, see
 # benchmarks/lab/notes/learning.md), for its 250 updates (16M steps).
-PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
-    PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
+PAPER_PRESETS["isaacgym-ballbalance"] = dataclasses.replace(
+    PAPER_PRESETS["isaacgym"], total_timesteps=16_384_000, num_envs=4096, num_minibatches=8,
     hidden_sizes=(128, 64, 32), normalize_value=True,
 )  # fmt: skip
-
-
-def _playground(unroll_length: int, batch_size: int, **fields) -> Config:
-    """One of MuJoCo Playground's Brax PPO configs (`locomotion_params`, `manipulation_params`) in
-    rpo_jax's terms. Brax gathers batch_size x num_minibatches unrolls of `unroll_length` steps
-    an update, num_envs at a time: num_steps is that many steps per environment, so a preset with
-    fewer environments (the CPU's) keeps the samples per update. Brax's choices kept: its policy
-    (`tanh-normal`: a squashed Gaussian whose scale the network outputs), constant learning rate,
-    no reward normalisation, no value clipping, its value loss (vf_coef 0.5 of a halved squared
-    error), SiLU (its swish), Adam's epsilon 1e-8, clip 0.3, a gradient clip only where the task's
-    config sets one. Not reproduced: observation normalisation without a clip (kept at 10
-    standard deviations), GAE cut at each unroll of `unroll_length` (rpo_jax's runs over num_steps)."""
-    base = dict(
-        lr=3e-4, lr_schedule="constant", gamma=0.97, ent_coef=1e-2, clip_coef=0.3, clip_value_loss=False,
-        max_grad_norm=1.0, adam_eps=1e-8, activation="silu", normalize_reward=False, num_minibatches=32,
-        update_epochs=4, num_envs=8192, dist=TANH_NORMAL,
-    )  # fmt: skip
-    base.update(fields)
-    base["num_steps"] = unroll_length * batch_size * base["num_minibatches"] // base["num_envs"]
-    return Config(**base)
-
-
-# Locomotion (`robot/` and `mjx-robot/` tasks), by the tasks they were tuned for.
-LEGGED = dict(hidden_sizes=(512, 256, 128))
-PRESETS["go1-joystick"] = _playground(20, 256, total_timesteps=200_000_000, **LEGGED)
-PRESETS["go1-getup"] = _playground(20, 256, total_timesteps=50_000_000, **LEGGED)
-PRESETS["go1-handstand"] = _playground(20, 256, total_timesteps=100_000_000, **LEGGED)
-PRESETS["humanoid-joystick"] = _playground(20, 256, total_timesteps=200_000_000, clip_coef=0.2, ent_coef=5e-3, **LEGGED)
-PRESETS["locomotion"] = _playground(
-    20, 256, total_timesteps=100_000_000, hidden_sizes=(128,) * 4, critic_hidden_sizes=(256,) * 5
-)  # Playground's default, for its tasks without a tuned config (Spot)
-# Manipulation. Brax clips no gradient on these but the Cartesian pick-up (max_grad_norm unset).
-MANIPULATION = dict(num_envs=2048, update_epochs=8, critic_hidden_sizes=(256,) * 5, max_grad_norm=0.0)
-PANDA_PICK_CUBE = dict(total_timesteps=20_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION)
-PRESETS["panda-pick-cube"] = _playground(10, 512, **PANDA_PICK_CUBE)
-# The same on a CPU's envpool simulators: 64 of them (about 16k-24k steps/s on 2 cores, where 2,048
-# would be no faster), each stepping 2,560 steps an update so that an update's 163,840 samples and
-# its 32 minibatches x 8 epochs are Playground's.
-PRESETS["panda-pick-cube-cpu"] = _playground(10, 512, **{**PANDA_PICK_CUBE, "num_envs": 64})
-PRESETS["panda-open-cabinet"] = _playground(
-    10, 512, total_timesteps=40_000_000, lr=1e-3, ent_coef=2e-2, hidden_sizes=(32,) * 4, **MANIPULATION
-)
-PRESETS["panda-pick-cube-cartesian"] = _playground(
-    10, 256, total_timesteps=5_000_000, lr=5e-4, ent_coef=7.5e-3, num_minibatches=8, reward_scale=0.1,
-    hidden_sizes=(256, 256), **{**MANIPULATION, "num_envs": 1024, "max_grad_norm": 1.0},
-)  # fmt: skip
-PRESETS["aloha-hand-over"] = _playground(
-    15,
-    512,
-    total_timesteps=100_000_000,
-    lr=1e-3,
-    ent_coef=2e-2,
-    hidden_sizes=(256,) * 3,
-    **{**MANIPULATION, "max_grad_norm": 1.0},
-)
-PRESETS["leap-cube-reorient"] = _playground(40, 256, total_timesteps=200_000_000, gamma=0.99, **LEGGED)
-PRESETS["leap-cube-rotate-z"] = _playground(40, 256, total_timesteps=100_000_000, **LEGGED)

@@ -26,8 +26,8 @@ from typing import Any, Literal, Sequence
 import tyro
 
 from rpo_jax import envs
-from rpo_jax.config import PRESETS, Config
-from rpo_jax.envs import dmc_tasks, robot_tasks
+from rpo_jax.config import PAPER_PRESETS, Config
+from rpo_jax.envs import recipes
 from rpo_jax.errors import UsageError, command_failures
 from rpo_jax.report import compose, results
 from rpo_jax.run.directory import (
@@ -42,9 +42,8 @@ from rpo_jax.run.options import (
 PROG = "python -m rpo_jax.experiment"
 
 SUITES: dict[str, tuple[str, ...]] = {
-    "dmc": tuple(f"dmc/{task}" for task in dmc_tasks.PAPER_TASKS),
-    # The paper's DMC tasks that MuJoCo Playground ports to MJX (all but the quadruped's).
-    "mjx-dmc": tuple(f"mjx-dmc/{task}" for task in dmc_tasks.PAPER_TASKS if task in dmc_tasks.PLAYGROUND_NAMES),
+    "dmc": recipes.PAPER_DMC,
+    "mjx-dmc": recipes.PAPER_MJX_DMC,
     "gym": ("gym/Pendulum-v1", "gym/BipedalWalker-v3"),
     "pybullet": ("pybullet/Ant", "pybullet/Minitaur"),
     "isaacgym": ("cartpole", "ballbalance"),
@@ -60,16 +59,15 @@ SUITES["reference"] = (
 SUITES["pbt-alpha"] = ("gymnasium/InvertedDoublePendulum-v5", "gymnasium/Reacher-v5")
 # The paper's 18 tasks, each once (DMC on the host, as dm_control would step it).
 SUITES["all"] = tuple(name for suite in ("dmc", "gym", "pybullet", "isaacgym") for name in SUITES[suite])
-# The IsaacGym tasks were trained with rl_games' settings for each task in the paper, everything
-# else with CleanRL's (the `paper` preset).
-TASK_PRESETS = {"cartpole": "isaacgym", "ballbalance": "isaacgym-ballbalance"}
-# The robots train with Playground's config for each (its PPO results', `robot_tasks.preset_of`),
-# on either path and whatever the options of their names; a legged robot and an arm.
+# Each task trains with the preset it was tuned with (`recipes.preset_for`: rl_games' for the
+# IsaacGym tasks, Playground's for each robot whatever its name's options), else CleanRL's (the
+# `paper` preset). The robots: a legged robot and an arm.
 SUITES["robots"] = ("robot/Go1JoystickFlatTerrain", "robot/PandaPickCube")
 SUITES["robustness"] = ("cartpole",)
 
-# The paper's budget: 8M environment steps per run, 10 seeds per variant.
-PAPER_TIMESTEPS, PAPER_SEEDS = PRESETS["paper"].total_timesteps, 10
+# The paper's config (CleanRL's) and budget: 8M environment steps per run, 10 seeds per variant.
+PAPER = PAPER_PRESETS["paper"]
+PAPER_TIMESTEPS, PAPER_SEEDS = PAPER.total_timesteps, 10
 ENTROPY_COEFS = (0.0, 0.01, 0.05, 0.5, 1.0, 10.0)
 RPO_ALPHAS = (0.001, 0.01, 0.1, 0.5, 1.0, 3.0, 10.0, 100.0, 1000.0)
 
@@ -170,9 +168,9 @@ class ExperimentArgs:
     """environment names instead of a suite"""
     jobs: tuple[str, ...] | None = None
     """only these of the experiment's jobs; None: all"""
-    config: tyro.conf.OmitArgPrefixes[JobConfig] = JobConfig(**{**vars(PRESETS["paper"]), "total_timesteps": PAPER_TIMESTEPS})
+    config: tyro.conf.OmitArgPrefixes[JobConfig] = JobConfig(**{**vars(PAPER), "total_timesteps": PAPER_TIMESTEPS})
     preset: PresetName | None = None
-    """config for every environment; None: rl_games' for the IsaacGym tasks, paper for the rest"""
+    """config for every environment; None: each task's own (IsaacGym's: rl_games', robots: Playground's), else paper"""
     robot: tyro.conf.OmitArgPrefixes[RobotSettings] = RobotSettings()
     run: tyro.conf.OmitArgPrefixes[JobRunSpec] = JobRunSpec(num_seeds=PAPER_SEEDS)
     processes: tyro.conf.OmitArgPrefixes[JobProcesses] = JobProcesses()
@@ -305,11 +303,11 @@ def prepare_out(out: Path, definition: dict, write: bool = True) -> None:
 
 def job_config(definition: dict, env: str, job: Job) -> tuple[str, Any]:
     """The preset and the config of `job`'s run on `env`."""
-    preset = definition["preset"] or TASK_PRESETS.get(env) or robot_tasks.preset_of(env) or "paper"
+    preset = definition["preset"] or recipes.preset_for(env) or "paper"
     overrides = {"algo": job.algo, **dict(job.config), **definition["config"], "total_timesteps": definition["total_timesteps"]}
     if "hidden_sizes" in overrides:
         overrides["hidden_sizes"] = tuple(overrides["hidden_sizes"])  # JSON's list, as the flag gives it
-    return preset, dataclasses.replace(PRESETS[preset], **overrides)
+    return preset, dataclasses.replace(recipes.PRESETS[preset], **overrides)
 
 
 def job_run(definition: dict, job: Job, directory: Path | None) -> RunSpec:

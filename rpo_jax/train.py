@@ -27,8 +27,8 @@ from typing import Any, Sequence
 
 import tyro
 
-from rpo_jax.config import PRESETS, Config, check_applies
-from rpo_jax.envs import robot_tasks
+from rpo_jax.config import Config, check_applies
+from rpo_jax.envs import recipes
 from rpo_jax.errors import DIVERGED_EXIT, UsageError, command_failures
 from rpo_jax.run.directory import env_directory
 from rpo_jax.run.options import (
@@ -63,7 +63,7 @@ class TrainArgs:
 def parse_args(argv: Sequence[str]) -> TrainArgs:
     """The flags as TrainArgs; bad input raises UsageError with tyro's message as one line."""
     preset = given_value(argv, "--preset")
-    return parse(TrainArgs, argv, TrainArgs(config=PRESETS.get(preset or "", Config())), PROG)
+    return parse(TrainArgs, argv, TrainArgs(config=recipes.PRESETS.get(preset or "", Config())), PROG)
 
 
 def check_new_run(args: TrainArgs, given: set[str]) -> None:
@@ -117,7 +117,7 @@ def make_plan(args: TrainArgs, argv: Sequence[str]) -> Any:
         raise UsageError("--allow-relayout applies to --resume only; a new run trains on the layout it is given")
     check_new_run(args, given)
     env = args.robot.env_name(args.env)
-    mismatch = robot_tasks.preset_mismatch(args.preset or "", env)
+    mismatch = recipes.preset_mismatch(args.preset or "", env)
     if mismatch:
         print(f"warning: {mismatch}; its sizes and rates were tuned for those", file=sys.stderr)
     name = f"{env_directory(env)}-{args.config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"

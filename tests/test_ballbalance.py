@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from rpo_jax.run.records import metric_arrays
-from rpo_jax.config import PRESETS
+from rpo_jax.envs.recipes import PRESETS
 from rpo_jax.envs import VectorEnv, make_env
 from rpo_jax.envs import ballbalance as bb
 from rpo_jax.ppo import make_train

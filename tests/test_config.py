@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, ppo
-from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, PRESETS, SWEEPABLE, TANH_NORMAL, Config, choices
+from rpo_jax.config import ALGORITHM_FIELDS, ALGORITHMS, SWEEPABLE, TANH_NORMAL, Config, choices
+from rpo_jax.envs.recipes import PRESETS
 from rpo_jax.errors import UsageError
 from rpo_jax.hyperparams import Hyperparams, read_by
 from rpo_jax.networks import ACTIVATIONS, DISTRIBUTIONS, mean_scale

@@ -16,7 +16,8 @@ import scipy.stats
 from rpo_jax import cpu_workarounds, envs
 from rpo_jax import loss as loss_module
 from rpo_jax import ppo
-from rpo_jax.config import PRESETS, Config
+from rpo_jax.config import Config
+from rpo_jax.envs.recipes import PRESETS
 from rpo_jax.envs import make_env
 from rpo_jax.loss import Batch, compute_gae, ppo_loss
 from rpo_jax.networks import perturb_location, policy_distribution

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from rpo_jax import envs, load_policy, ppo, train
-from rpo_jax.config import PRESETS, Config
+from rpo_jax.config import Config
+from rpo_jax.envs.recipes import PRESETS
 from rpo_jax.envs import robots
 from rpo_jax.envs.check import check_env
 from rpo_jax.errors import UsageError

@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rpo_jax.config import PRESETS, Config
+from rpo_jax.config import Config
+from rpo_jax.envs.recipes import PRESETS
 from rpo_jax.envs import make_env
 from rpo_jax.ppo import Metrics, make_train, make_trainer
 

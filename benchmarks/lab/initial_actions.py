@@ -40,7 +40,7 @@ def rpo_jax_actions(seed: int) -> float:
     import jax.numpy as jnp
 
     from rpo_jax import envs, ppo
-    from rpo_jax.config import PRESETS
+    from rpo_jax.envs.recipes import PRESETS
 
     spec = envs.env_spec("robot/" + TASK)
     actor, _ = ppo.make_networks(PRESETS["go1-joystick"], spec)

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # this folder: phases.
 from phases import interleaved, spread, update_phases  # noqa: E402
 
 from rpo_jax import envs, ppo  # noqa: E402
-from rpo_jax.config import PRESETS  # noqa: E402
+from rpo_jax.envs.recipes import PRESETS  # noqa: E402
 
 
 def raw_seconds(env: envs.HostEnv, num_envs: int, steps: int) -> float:

@@ -11,7 +11,7 @@ space (Discrete, Dict, images), is refused with a one-line error.
 from __future__ import annotations
 
 import re
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -106,6 +106,17 @@ class DrawnTask:
 
     def close(self) -> None:
         self.env.close()
+
+
+def serves(name: str) -> bool:
+    """Whether `name` is one of this suite's unlisted names: `gymnasium/<id>`, any Gymnasium task."""
+    return name.startswith(PREFIX)
+
+
+def unlisted(name: str, import_function: Any) -> tuple[Callable[[], HostEnv], EnvSpec | None]:
+    """The factory of `name`, one that `serves`, and its spec where known without building it
+    (Gymnasium's is read from a built task: None)."""
+    return (lambda: make(name.removeprefix(PREFIX))), None
 
 
 def make(gym_id: str, name: str | None = None) -> HostEnv:

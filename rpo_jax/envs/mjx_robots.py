@@ -209,6 +209,21 @@ class MjxRobot:
         return state[0].data.qpos
 
 
+def serves(name: str) -> bool:
+    """Whether `name` is one of this suite's unlisted names: an MJX robot with options of its own
+    (`mjx-robot/<Task>?KEY=VALUE,...`; the plain names are registered)."""
+    return name.startswith(PREFIX) and "?" in name
+
+
+def unlisted(
+    name: str, import_function: Callable[[str, int], Callable[..., Any]]
+) -> tuple[Callable[[], MjxRobot], EnvSpec | None]:  # fmt: skip
+    """The factory of `name`, one that `serves`, and its spec where its task is known (else
+    `make` refuses it when called)."""
+    task = name.removeprefix(PREFIX).partition("?")[0]
+    return (lambda: make(name, import_function)), spec(task, name) if task in MJX_TASKS else None
+
+
 def make(name: str, import_function: Callable[[str, int], Callable[..., Any]]) -> MjxRobot:
     """`mjx-robot/<Task>`, randomised where Playground's training is, or as its `randomize` option
     says (an import path, which `import_function(path, arguments)` imports)."""

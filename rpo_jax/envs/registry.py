@@ -33,6 +33,11 @@ from rpo_jax.envs.wrappers import vectorize
 from rpo_jax.errors import UsageError
 
 
+# The suites with names beyond those registered (`serves(name)`, `unlisted(name, import_factory)`):
+# any Gymnasium task, the robots with options of their own on either path.
+OPEN_SUITES = (gymnasium, robots, mjx_robots)
+
+
 @dataclasses.dataclass
 class _Entry:
     factory: Callable[[], Env]
@@ -66,16 +71,10 @@ def _entry(name: str) -> _Entry:
         spec = dataclasses.replace(inner.spec, name=name) if inner.spec else None
         return _Entry(lambda: perturbations.perturbed(inner.factory(), parsed, name), spec)
     # Not kept in the registry, so that they are never listed and a changed module is read again.
-    if name.startswith(gymnasium.PREFIX):
-        imported_module(name)  # Gymnasium imports the module of an id module:Env-v0
-        return _Entry(lambda: gymnasium.make(name.removeprefix(gymnasium.PREFIX)), None)
-    if name.startswith(robots.PREFIX) and "?" in name:  # a robot with options of its own
-        task, _ = robots.parse_name(name)
-        return _Entry(lambda: robots.make(name), robots.spec(task, name))
-    if name.startswith(mjx_robots.PREFIX) and "?" in name:
-        task = name.removeprefix(mjx_robots.PREFIX).partition("?")[0]
-        spec = mjx_robots.spec(task, name) if task in mjx_robots.MJX_TASKS else None
-        return _Entry(lambda: mjx_robots.make(name, import_factory), spec)
+    suite = next((suite for suite in OPEN_SUITES if suite.serves(name)), None)
+    if suite is not None:
+        imported_module(name)  # refuses a module name it would import that is not absolute
+        return _Entry(*suite.unlisted(name, import_factory))
     if ":" in name:
         return _Entry(lambda: import_factory(name)(), None)
     close = difflib.get_close_matches(name, _REGISTRY, n=5)

@@ -19,7 +19,7 @@ same environment. Episodes end by termination (a fall) or, at the task's limit, 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 from rpo_jax.envs import perturbations
 from rpo_jax.envs.host import HostEnv
@@ -80,6 +80,18 @@ def _import_envpool(name: str) -> Any:
 # The physics axes (`perturbations.MODEL_AXES`) that envpool's ports expose as settings: the
 # position servos' stiffness and damping (kp, kd) are their actuators' strength.
 SETTING_AXES = {"gain": ("kp", "kd")}
+
+
+def serves(name: str) -> bool:
+    """Whether `name` is one of this suite's unlisted names: a robot with options of its own
+    (`robot/<Task>?KEY=VALUE,...`; the plain names are registered)."""
+    return name.startswith(PREFIX) and "?" in name
+
+
+def unlisted(name: str, import_function: Any) -> tuple[Callable[[], HostEnv], EnvSpec]:
+    """The factory and the spec of `name`, one that `serves`, its options checked now."""
+    task, _ = parse_name(name)
+    return (lambda: make(name)), spec(task, name)
 
 
 def make(name: str) -> HostEnv:

@@ -18,12 +18,12 @@ from typing import Annotated, Literal, Sequence, TypeVar
 
 import tyro
 
-from rpo_jax.config import PRESETS, Config
-from rpo_jax.envs import robot_tasks
+from rpo_jax.config import Config
+from rpo_jax.envs import recipes
 from rpo_jax.errors import UsageError, check_no_shadowing
 from rpo_jax.hyperparams import EXPLORE_RULES, LOG_SCALE, PBT_QUANTILE, PERTURB_FACTORS, SWEEPABLE
 
-PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+PresetName = Literal[tuple(recipes.PRESETS)]  # type: ignore[valid-type]
 # Flags declared once for several commands: --eval-episodes (RunSpec's, and evaluate's) and the
 # run directory that evaluate and export read (`TrainedRun`).
 EvalEpisodes = Annotated[int, tyro.conf.arg(help="episodes per evaluation, on fresh environments with their own rewards")]
@@ -206,16 +206,7 @@ class RobotSettings:
     def env_name(self, env: str) -> str:
         """`env` with these settings among its options; UsageError where they cannot apply."""
         env += "".join(PERTURBATION_SEPARATOR + axis for axis in self.randomize)
-        push = {"on": True, "off": False}.get(self.push)
-        given = {robot_tasks.NOISE_LEVEL: self.obs_noise, robot_tasks.PUSH_ENABLE: push}
-        options = {name: value for name, value in given.items() if value is not None}
-        if not options:
-            return env
-        if not env.startswith((robot_tasks.PREFIX, robot_tasks.MJX_PREFIX)):
-            raise UsageError(f"--obs-noise and --push apply to robot/ and mjx-robot/ tasks, not {env!r}")
-        if self.obs_noise is not None and not self.obs_noise >= 0:
-            raise UsageError(f"--obs-noise must be >= 0 (0: no noise, 1: the task's own scale), got {self.obs_noise}")
-        return robot_tasks.with_options(env, options)
+        return recipes.with_sensing(env, self.obs_noise, {"on": True, "off": False}.get(self.push))
 
 
 @dataclasses.dataclass(frozen=True)
