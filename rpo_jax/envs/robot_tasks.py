@@ -1,7 +1,8 @@
 """MuJoCo Playground's robots that rpo_jax registers, as static data, so that the registry and
-the experiments name them without importing a simulator or JAX (`spec` imports it when called),
-and the options of their names, which both paths read (`robots`: envpool's ports on the host;
-`mjx_robots`: MJX). Read from envpool 1.2.5's ports; tests/test_robots.py checks them against it."""
+the experiments name them without importing a simulator or JAX (`spec` imports it when called);
+the options of their names, which both paths read (`robots`: envpool's ports on the host;
+`mjx_robots`: MJX); and Playground's training recipes for them (`PRESETS`). Read from envpool
+1.2.5's ports; tests/test_robots.py checks them against it."""
 
 from __future__ import annotations
 
