@@ -176,6 +176,30 @@ def test_playground_models_are_changed_where_their_steps_read_them():
     check_axes(dmc, ("mass", "gain", "gravity"))
 
 
+def upright(obs, key, deterministic):
+    """A fixed policy that keeps Brax's inverted pendulum up for a while at its own mass."""
+    return jnp.clip(2 * obs[..., 1:2] + 0.5 * obs[..., 3:4], -1, 1)
+
+
+def test_brax_steps_the_system_its_pipeline_reads_and_refuses_what_it_lacks():
+    env = envs.make_env("brax/inverted_pendulum")
+    system = simulated_model(env)
+    heavier = simulated_model(with_model(env, lambda model: scaled_model(model, "mass", 2.0)))
+    # Its pipeline's own inertia and MJX's fields alike; the original untouched.
+    np.testing.assert_allclose(heavier.link.inertia.mass, 2 * system.link.inertia.mass)
+    np.testing.assert_allclose(heavier.body_mass, 2 * system.body_mass)
+    assert simulator(env).env.sys is system
+    stronger = simulated_model(with_model(env, lambda model: scaled_model(model, "gain", 2.0)))
+    np.testing.assert_allclose(stronger.actuator.gain, 2 * system.actuator.gain)
+    with pytest.raises(UsageError, match="joint-friction changes nothing in brax/inverted_pendulum: Brax's pipelines"):
+        check_axes(env, ("joint-friction",))
+    grid = robustness.Grid.parse(["mass=1,3", "push=0,1"])
+    result = robustness.evaluate_under(env, upright, grid, 4, jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(result.returns[0, 0], result.nominal_returns)  # factor 1, no push: nominal
+    assert result.returns[1, 0].mean() < result.returns[0, 0].mean()  # a pole three times as heavy falls sooner
+    assert not np.array_equal(result.returns[0, 1], result.nominal_returns)  # kicked
+
+
 def test_the_command_writes_a_table_json_and_figure_and_never_over_them(finished, capsys):
     argv = [str(finished), "--perturb", "obs-noise=0,0.5", "--perturb", "delay=0,1", "--episodes", "3"]
     assert evaluate.main(argv) == 0

@@ -3,7 +3,8 @@ imported when an environment is built; `SPECS` lists them without it."""
 
 from __future__ import annotations
 
-from typing import Any
+import copy
+from typing import Any, Callable
 
 import jax
 
@@ -81,3 +82,21 @@ class BraxEnv(DoneIsTermination):
     @staticmethod
     def qpos(state: Any) -> jax.Array:
         return state.pipeline_state.q
+
+    @property
+    def model(self) -> Any:
+        """Brax's System, an MJX model with its pipelines' own fields (`protocol.SimulatesModel`;
+        `perturbations.BRAX_MODEL_AXES` says which an axis scales)."""
+        return self.env.sys
+
+    def with_model(self, change: Callable[[Any], Any]) -> BraxEnv:
+        """A copy whose Brax environment steps `change(model)`: its pipeline reads `sys`."""
+        env, inner = copy.copy(self), copy.copy(self.env)
+        inner.sys = change(self.env.sys)
+        env.env = inner
+        return env
+
+    @staticmethod
+    def pushed(state: Any, velocity: jax.Array) -> Any:
+        """`state` with `velocity` added to its pipeline's joint velocities `qd`."""
+        return state.replace(pipeline_state=state.pipeline_state.replace(qd=state.pipeline_state.qd + velocity))

@@ -3,11 +3,11 @@ the nominal ones, by values that may be traced, so that one compiled program ste
 of them (`rpo_jax.robustness`).
 
 Model axes scale fields of an MJX model (a factor of 1 changes nothing, bit for bit); they apply
-to environments simulated by MJX in the program (`cartpole`, `ballbalance`, `mjx-dmc/`,
-`mjx-robot/`: `protocol.SimulatesModel`) and, on the host, to the MuJoCo models of Gymnasium's
-MuJoCo tasks (`scale_in_place`, `rpo_jax.robustness`); they are refused, in one line, where the
-task has no such physics (a factor of cartpole's zero damping would change nothing). Sensing and
-acting axes wrap any environment:
+to environments simulated in the program (`cartpole`, `ballbalance`, `mjx-dmc/`, `mjx-robot/`,
+and Brax's `brax/`, whose System adds fields of its own: `protocol.SimulatesModel`) and, on the
+host, to the MuJoCo models of Gymnasium's MuJoCo tasks (`scale_in_place`, `rpo_jax.robustness`);
+they are refused, in one line, where the task has no such physics (a factor of cartpole's zero
+damping would change nothing). Sensing and acting axes wrap any environment:
 
     friction        every geom's sliding friction          where contacts are on
     joint-friction  every degree of freedom's frictionloss where some is non-zero
@@ -40,8 +40,9 @@ MAX_DELAY = 8
 SEPARATOR = "+"
 
 
-# name -> the model fields it scales, each (field, index) ("opt.gravity" is opt's); the first is
-# the field that must be non-zero somewhere for the axis to change anything.
+# name -> the model fields it scales, each (field, index) (a dotted field is a field's field:
+# "opt.gravity"); the first is the field that must be non-zero somewhere for the axis to change
+# anything.
 ALL, FIRST = (slice(None),), (slice(None), 0)
 MODEL_AXES: dict[str, tuple[tuple[str, tuple], ...]] = {
     "friction": (("geom_friction", FIRST),),  # the sliding coefficient, not torsion or rolling
@@ -51,6 +52,16 @@ MODEL_AXES: dict[str, tuple[tuple[str, tuple], ...]] = {
     "gain": (("actuator_gainprm", FIRST), ("actuator_biasprm", (slice(None), slice(0, 3)))),
     "damping": (("dof_damping", ALL),),
     "gravity": (("opt.gravity", ALL),),
+}
+# Brax's System is an MJX model whose own pipelines read fields of their own (`link.inertia`,
+# `actuator.gain`, `dof.damping`, `gravity`): both are scaled, so that whichever its pipeline
+# steps with changes; its contacts are MJX's collisions (`geom_friction`). No joint friction.
+BRAX_MODEL_AXES: dict[str, tuple[tuple[str, tuple], ...]] = {
+    "friction": MODEL_AXES["friction"],
+    "mass": (*MODEL_AXES["mass"], ("link.inertia.mass", ALL), ("link.inertia.i", ALL)),
+    "gain": (*MODEL_AXES["gain"], ("actuator.gain", ALL), ("actuator.bias_q", ALL), ("actuator.bias_qd", ALL)),
+    "damping": (*MODEL_AXES["damping"], ("dof.damping", ALL)),
+    "gravity": (*MODEL_AXES["gravity"], ("gravity", ALL)),
 }
 SIGNAL_AXES = ("obs-noise", "action-noise", "delay")
 # Kicks to the simulator's state: a speed (m/s) added to its first joint at random moments.
@@ -66,14 +77,27 @@ PUSH_EVERY_S = 5.0
 
 
 def _field(model: Any, field: str) -> Any:
-    return model.opt.gravity if field == "opt.gravity" else getattr(model, field)
+    for name in field.split("."):
+        model = getattr(model, name)
+    return model
+
+
+def _replaced(model: Any, field: str, value: Any) -> Any:
+    """`model` with its (dotted) `field` replaced by `value`, each dataclass on the way copied."""
+    name, _, rest = field.partition(".")
+    return model.replace(**{name: _replaced(getattr(model, name), rest, value) if rest else value})
+
+
+def model_axes(model: Any) -> dict[str, tuple[tuple[str, tuple], ...]]:
+    """The model axes of `model` and the fields each scales: Brax's System's own, or MJX's."""
+    return BRAX_MODEL_AXES if hasattr(model, "link") else MODEL_AXES
 
 
 def scaled_model(model: Any, axis: str, factor: Any) -> Any:
-    """The MJX model `model` with the fields of `axis` scaled by `factor` (possibly traced)."""
-    for field, index in MODEL_AXES[axis]:
-        value = _field(model, field).at[index].multiply(factor)
-        model = model.replace(opt=model.opt.replace(gravity=value)) if field == "opt.gravity" else model.replace(**{field: value})
+    """The MJX model (or Brax System) `model` with the fields of `axis` scaled by `factor`
+    (possibly traced)."""
+    for field, index in model_axes(model)[axis]:
+        model = _replaced(model, field, _field(model, field).at[index].multiply(factor))
     return model
 
 
@@ -106,8 +130,8 @@ def check_axes(env: Env, axes: tuple[str, ...]) -> None:
     model = simulated_model(env)
     if needs_simulator and model is None:
         raise UsageError(
-            f"{env.spec.name} has no MJX model that rpo_jax changes (cartpole's, ballbalance's, mjx-dmc/'s and "
-            f"mjx-robot/'s), so {needs_simulator[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
+            f"{env.spec.name} has no MJX model that rpo_jax changes (cartpole's, ballbalance's, brax/'s, mjx-dmc/'s "
+            f"and mjx-robot/'s), so {needs_simulator[0]} cannot change; its axes are {', '.join(SIGNAL_AXES)}"
         )
     check_model(env.spec.name, model, [axis for axis in axes if axis in MODEL_AXES])
 
@@ -131,6 +155,8 @@ def check_model(name: str, model: Any, axes: list[str] | tuple[str, ...]) -> Non
     """Refuses (one line) a model axis of `axes` that would change nothing in `model`, MJX's or
     MuJoCo's: all its first field's values zero, or friction where no contact can happen."""
     for axis in axes:
+        if axis not in model_axes(model):
+            raise UsageError(f"{axis} changes nothing in {name}: Brax's pipelines have no {axis}")
         field = MODEL_AXES[axis][0][0]
         if (axis == "friction" and not can_touch(model)) or not bool(jnp.any(jnp.asarray(_field(model, field)) != 0)):
             raise UsageError(f"{axis} changes nothing in {name}: its model has no {field.split('.')[-1]} in use")
