@@ -154,7 +154,11 @@ def run_command(args: EvaluateArgs) -> None:
         key = jax.random.fold_in(jax.random.PRNGKey(seeds[run]), 1)
         (episode,) = video.record(env, run_policy(run), 1, key, deterministic)
         video.write_mp4(args.video, [episode])
-        print(f"video: {args.video} ({episode.steps} steps, return {episode.total:.2f})")
+        # Its own program and simulator: not one of the episodes above, and it says so.
+        print(
+            f"video: {args.video}, a further episode of the {policy_mode(deterministic)} policy, not one of the "
+            f"{episodes} evaluated: {episode.steps} steps, return {episode.total:.2f}"
+        )
 
 
 def evaluate_perturbed(args: EvaluateArgs, saved: dict, run: int) -> None:

@@ -16,7 +16,7 @@ from point_mass import SPEC as HOST_SPEC
 from point_mass import PointMassSim, host_point_mass
 from test_tracking import read_wandb_run
 
-from rpo_jax import envs, train
+from rpo_jax import envs, evaluate, train
 from rpo_jax.envs.host import HostEnv
 from rpo_jax.report import compose
 from rpo_jax.config import Config
@@ -176,7 +176,7 @@ def test_capture_video_draws_each_run_into_the_run_directory_tensorboard_and_wan
     assert compose.main([str(out)]) == 0 and (out / "report.md").is_file()
 
 
-def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
+def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path, capsys):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     out = tmp_path / "host"
@@ -192,6 +192,11 @@ def test_a_host_side_task_is_drawn_by_its_own_simulator(drawn_envs, tmp_path):
     events = EventAccumulator(str(out / "tensorboard" / "seed_1"), size_guidance={"images": 0})
     events.Reload()
     assert [image.step for image in events.Images("video/episodes")] == [128, 256, 384, 512, 640]
+    # evaluate's video is drawn the same way, and says it is not one of the episodes evaluated.
+    assert evaluate.main([str(out), "--episodes", "2", "--video", str(tmp_path / "host.mp4")]) == 0
+    said = capsys.readouterr().out.splitlines()[-1]
+    assert said.startswith(f"video: {tmp_path / 'host.mp4'}, a further episode of the deterministic policy, not one of the 2")
+    assert len(read_frames(tmp_path / "host.mp4")) == HOST_SPEC.max_episode_steps + 1
 
 
 def test_video_time_is_kept_out_of_training_time_and_steps_per_second(drawn_envs, tmp_path, monkeypatch):
