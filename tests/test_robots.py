@@ -252,12 +252,25 @@ def test_an_mjx_robot_loads_from_the_installed_menagerie_and_traces_as_its_spec_
     from rpo_jax.envs import mjx_robots
     from rpo_jax.envs.check import first_step_problems
 
-    assert mjx_env.MENAGERIE_PATH == mjx_robots.menagerie_path() and mjx_env.MENAGERIE_PATH.is_dir()
+    assert mjx_env.MENAGERIE_PATH == mjx_robots.menagerie_path("Go1JoystickFlatTerrain") and mjx_env.MENAGERIE_PATH.is_dir()
     assert go1.spec == dataclasses_replace(robots.SPECS["robot/Go1JoystickFlatTerrain"], "mjx-robot/", "mjx")
     assert first_step_problems(go1) == []
     state, _ = jax.eval_shape(go1.reset, jax.random.PRNGKey(0))
     _, ts = jax.eval_shape(go1.step, state, jnp.zeros(12))
     assert "task/reward/tracking_lin_vel" in ts.info and ts.info["task/reward/tracking_lin_vel"].shape == ()
+
+
+def test_every_mjx_robot_finds_its_models_and_a_humanoid_of_the_other_package_builds():
+    pytest.importorskip("mujoco_playground")
+    from rpo_jax.envs import mjx_robots
+
+    # envpool installs the humanoids' models in a package of their own: G1, T1 and the Berkeley
+    # Humanoid failed to build ("Error opening file .../unitree_g1/assets/pelvis.STL").
+    folders = {task: mjx_robots.menagerie_path(task) for task in mjx_robots.MJX_TASKS}
+    assert folders["G1JoystickFlatTerrain"] != folders["Go1JoystickFlatTerrain"]
+    g1 = envs.make_env("mjx-robot/G1JoystickFlatTerrain")
+    _, ts = jax.eval_shape(g1.reset, jax.random.PRNGKey(0))
+    assert ts.obs.shape == (g1.spec.observation_size,) == (103 + 216,)
 
 
 def test_the_cpu_paths_steps_carry_the_ports_reward_terms():

@@ -1,7 +1,7 @@
 """Memory per simulator of each of Playground's robots, on either path.
 
     python benchmarks/lab/robot_memory.py [--small] [TASK ...]        # robot/ (envpool)
-    python benchmarks/lab/robot_memory.py --mjx [TASK ...]            # mjx-robot/ (MJX)
+    python benchmarks/lab/robot_memory.py --mjx [--state] [TASK ...]  # mjx-robot/ (MJX)
 
 envpool: a fresh process builds a pool of 8 simulators (the task's model and code loaded once),
 then one of 40 (4, then 12 with --small, for the largest), and its resident memory grown by the
@@ -11,7 +11,9 @@ MJX: the memory XLA plans for one update of the task's preset (arguments, output
 temporaries, less what outputs alias; `Compiled.memory_analysis`), compiled for 64 and 128
 environments stepping 20 steps each: the difference over 64 is one environment's share (its
 simulator state, the step's working arrays, its rollout of 20 steps); the total at 64 says what
-the networks and the optimiser add. Compiled only (nothing runs), one task at a time.
+the networks and the optimiser add. Compiled only (nothing runs), one task at a time. With
+--state, no compile: one environment's state (its simulator's data, observation and the task's
+own), the least an environment can take, from the shapes of its reset.
 """
 
 from __future__ import annotations
@@ -68,8 +70,26 @@ def update_megabytes(task: str, num_envs: int) -> tuple[float, float]:
     return (planned - stats.alias_size_in_bytes) / 1e6, seconds
 
 
-def mjx_megabytes(tasks: list[str]) -> None:
-    for task in tasks or TASKS:
+def state_megabytes(task: str) -> float:
+    """One MJX environment's state after its reset, from its shapes (nothing compiled or run)."""
+    import jax
+
+    from rpo_jax import envs
+
+    shapes = jax.eval_shape(envs.make_env(f"mjx-robot/{task}").reset, jax.random.PRNGKey(0))
+    return sum(leaf.size * leaf.dtype.itemsize for leaf in jax.tree.leaves(shapes)) / 1e6
+
+
+def mjx_megabytes(tasks: list[str], state_only: bool) -> None:
+    from rpo_jax.envs.mjx_robots import MJX_TASKS
+
+    for task in tasks or MJX_TASKS:
+        if state_only:
+            try:
+                print(f"{task}: its state {state_megabytes(task) * 1000:.1f} kB an environment", flush=True)
+            except Exception as error:  # a task that cannot be built here: said, and the others go on
+                print(f"{task}: failed: {str(error).splitlines()[0]}", flush=True)
+            continue
         (small, seconds), (large, _) = (update_megabytes(task, size) for size in MJX_SIZES)
         each = (large - small) / (MJX_SIZES[1] - MJX_SIZES[0])
         print(f"{task}: {each:.2f} MB an environment; {small:.0f} MB at {MJX_SIZES[0]}; compiled in {seconds:.1f} s", flush=True)
@@ -78,6 +98,6 @@ def mjx_megabytes(tasks: list[str]) -> None:
 if __name__ == "__main__":
     arguments = sys.argv[1:]
     if "--mjx" in arguments:
-        mjx_megabytes([arg for arg in arguments if arg != "--mjx"])
+        mjx_megabytes([arg for arg in arguments if arg not in ("--mjx", "--state")], "--state" in arguments)
     else:
         envpool_megabytes(arguments)

