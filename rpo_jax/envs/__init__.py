@@ -11,8 +11,9 @@ registry of them by name.
   also takes `gymnasium/<id>` and an import path `package.module:factory`.
 - `check`: `check_env`, the protocol checked by running an environment
   (`python -m rpo_jax.envs --check NAME`).
-- one module per simulator family: `cartpole` and `ballbalance` (MJX), `brax`, `playground`
-  (MuJoCo Playground's DeepMind Control on MJX), and the host-side suites `gym`, `pybullet` and
+- one module per simulator family: `cartpole` and `ballbalance` (MJX), `brax`, `mjx_dmc`
+  (MuJoCo Playground's DeepMind Control on MJX), `robots` and `mjx_robots` (its robots on either
+  path), and the host-side suites `gym`, `pybullet` and
   `dmc` (envpool's DeepMind Control) and `gymnasium` (any Gymnasium task with Box spaces),
   which `host` puts behind the batched protocol.
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from rpo_jax.envs import (
-    ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, mjx_robots, perturbations, playground, pybullet,
+    ballbalance, brax, cartpole, dmc, dmc_tasks, gym, gymnasium, mjx_dmc, mjx_robots, perturbations, pybullet,
     robot_tasks, robots,
 )  # fmt: skip
 from rpo_jax.envs.check import missing_members
@@ -250,7 +250,7 @@ for _name in pybullet.GYM_IDS:
 for _task in dmc_tasks.TASKS:
     register_env(f"dmc/{_task}", lambda task=_task: dmc.make(task), dmc.SPECS[f"dmc/{_task}"])
 for _task in dmc_tasks.PLAYGROUND_NAMES:
-    register_env(f"mjx-dmc/{_task}", lambda task=_task: playground.PlaygroundEnv(task), playground.SPECS[f"mjx-dmc/{_task}"])
+    register_env(f"mjx-dmc/{_task}", lambda task=_task: mjx_dmc.PlaygroundEnv(task), mjx_dmc.SPECS[f"mjx-dmc/{_task}"])
 register_env("ballbalance", ballbalance.BallBalance, ballbalance.SPEC)
 for _name in robots.SPECS:
     register_env(_name, lambda name=_name: robots.make(name), robots.SPECS[_name])
