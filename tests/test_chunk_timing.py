@@ -72,7 +72,7 @@ def test_the_sinks_write_after_the_queued_chunk_has_ended(tmp_path, monkeypatch)
 def test_train_seconds_and_steps_per_second_leave_evaluation_and_checkpoints_out(tmp_path, monkeypatch):
     # Evaluations and checkpoints' writes made slow (2 s and 1 s each) against a training of 20
     # tiny updates that takes well under a second: counted in train_seconds, they would dominate it.
-    # The write itself is slowed, inside the laps that `records.RunCheckpoints.write` times it by.
+    # The write itself is slowed, inside the laps that `checkpoint.RunCheckpoints.write` times it by.
     # The run's clock is the test's (SteadyClock): a reading takes 1 ms and a slowed step its
     # seconds, whatever the machine's load, so the bounds below hold on a busy machine too.
     clock = SteadyClock()

@@ -11,6 +11,10 @@ SHA-256 checksum of every saved array and of the record itself, so a checkpoint 
 was written (a truncated, deleted, overwritten or edited file) raises `CheckpointDamaged` on
 restore, and `restore_latest` falls back to the previous one. Checkpoints written before the
 checksums existed restore unverified.
+
+A run's checkpoints between chunks (`RunCheckpoints`): the scheduled ones with their records, the
+one a stop leaves (`checkpoint_on_stop`), and the latest good one restored with its record checked
+against metrics.jsonl and config.json (`restore`).
 """
 
 from __future__ import annotations
@@ -34,8 +38,12 @@ import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
-from rpo_jax.errors import stops_deferred
-from rpo_jax.parallel import cluster
+from rpo_jax import ppo
+from rpo_jax.errors import UsageError, stops_deferred
+from rpo_jax.parallel import cluster, devices
+from rpo_jax.run.directory import config_checksums, sync
+from rpo_jax.run.plan import RunPlan, check_trained_with, training_record
+from rpo_jax.run.records import Clock
 
 # The record's key holding the checksums; `restore` returns the record without it.
 CHECKSUMS = "checksums"
@@ -301,3 +309,126 @@ def _not_a_stray_callback(record: logging.LogRecord) -> bool:
 def _first_line(error: BaseException) -> str:
     text = str(error).strip().splitlines()
     return text[0][:200] if text else type(error).__name__
+
+
+# --------------------------------------------------------------------------------------------
+# A run's checkpoints between chunks
+
+
+class RunCheckpoints:
+    """A run's checkpoints between chunks, each with its record: the scheduled ones (`save`) and,
+    on Ctrl-C or SIGTERM (`checkpoint_on_stop`), one of the last chunk whose rows were logged
+    (`hold`), so that a stop loses only the chunk under way rather than every update since the
+    last checkpoint, whatever the interval. `checkpointer` None: scheduled checkpoints are off (a
+    stop still writes its one)."""
+
+    def __init__(
+        self, plan: RunPlan, placement: devices.Placement, checkpointer: Checkpointer | None, metrics_file: Any, clock: Clock
+    ) -> None:  # fmt: skip
+        self.plan, self.placement, self.checkpointer, self.metrics_file, self.clock = (
+            plan, placement, checkpointer, metrics_file, clock,
+        )  # fmt: skip
+        self.logged: tuple[ppo.TrainState, int, int, dict[str, float], int] | None = None  # what a stop would write
+
+    def hold(self, state: ppo.TrainState, update: int) -> None:
+        """After a chunk's rows are logged: `state` after `update`, with metrics.jsonl's size and the
+        run's seconds then (not the queued chunk's, which the resume trains again), and pbt.jsonl's size."""
+        metrics_bytes = self.metrics_file.tell() if self.metrics_file else 0
+        self.logged = (state, update, metrics_bytes, dict(self.clock.seconds), self.plan.run_dir.lineage_size())
+
+    def save(self, state: ppo.TrainState, update: int) -> int:
+        """The scheduled checkpoint of `state` after `update`; returns `update`."""
+        self.logged = None  # a stop during the write writes nothing more
+        self.write(state, update)
+        return update
+
+    def write(
+        self, state: ppo.TrainState, update: int, metrics_bytes: int | None = None, seconds: dict[str, float] | None = None,
+        lineage_bytes: int | None = None,
+    ) -> None:  # fmt: skip
+        """Checkpoints `state` after `update` with its record: metrics.jsonl's size and checksum, the
+        run.s seconds and what it was trained with, and a population.s pbt.jsonl.s size and checksum; its own
+        seconds counted as checkpointing. The
+        size and seconds are those at the call unless given (a stop's checkpoint of an earlier
+        chunk: the rows logged after its size are cut at the resume)."""
+        clock, metrics_file = self.clock, self.metrics_file
+        clock.lap("train_seconds")
+        synced = sync(metrics_file) if metrics_file else 0  # orbax writes process 0's record only
+        metrics_bytes = synced if metrics_bytes is None else metrics_bytes
+        metrics_sha256 = self.plan.run_dir.metrics_checksum(metrics_bytes) if metrics_file else None
+        record = {"update": update, "metrics_bytes": metrics_bytes, "metrics_sha256": metrics_sha256}
+        if self.plan.pbt and metrics_file:  # the lineage, protected as metrics.jsonl is
+            lineage_bytes = self.plan.run_dir.lineage_size() if lineage_bytes is None else lineage_bytes
+            record.update(lineage_bytes=lineage_bytes, lineage_sha256=self.plan.run_dir.lineage_checksum(lineage_bytes))
+        if metrics_file:  # what config.json protects, checked on resume
+            record["config_sha256"] = config_checksums(self.plan.run_dir.read_config())
+        record.update(**(seconds or clock.seconds), trained_with=training_record(self.plan))
+        self.checkpointer.save(update, self.placement.checkpoint_state(state), record)
+        clock.lap("checkpoint_seconds")
+
+
+@contextlib.contextmanager
+def checkpoint_on_stop(checkpoints: RunCheckpoints) -> Iterator[RunCheckpoints]:
+    """On Ctrl-C or SIGTERM in the block, writes the chunk `checkpoints` holds before the stop goes
+    on, with scheduled checkpoints off too (--checkpoint-every 0, the default of runs under 5M
+    steps): a stop never loses the chunks logged. One process only: several would all have to
+    take part in the write."""
+    try:
+        yield checkpoints
+    except KeyboardInterrupt:
+        if checkpoints.logged and jax.process_count() == 1:
+            with contextlib.suppress(OSError):  # where it cannot be written, the earlier checkpoints resume the run
+                if checkpoints.checkpointer is None:
+                    checkpoints.checkpointer = Checkpointer(checkpoints.plan.run_dir.checkpoints)
+                checkpoints.write(*checkpoints.logged)
+                checkpoints.checkpointer.close()
+        raise
+
+
+def check_layout(saved_record: dict[str, Any], placement: devices.Placement, plan: RunPlan) -> None:
+    """Refuses, unless `plan.allow_relayout`, a resume on another number of processes or devices
+    than the run's (where `devices.check_resumable` lets it restore at all): each layout compiles
+    programs of its own shapes, which round differently, so the run would not continue as the
+    uninterrupted one."""
+    saved = (saved_record.get("processes", 1), saved_record.get("devices", 1))
+    if plan.allow_relayout or saved == (placement.processes, placement.count):
+        return
+    raise UsageError(
+        f"--resume {plan.out}: the run was trained by {saved[0]} process(es) on {saved[1]} device(s), and would resume by "
+        f"{placement.processes} on {placement.count}, which is not bit-exact; resume on its layout (--devices, "
+        "--cpu-devices), or add --allow-relayout to continue on this one"
+    )
+
+
+def restore(plan: RunPlan, abstract_state: Any) -> tuple[Any, dict[str, Any]] | None:
+    """The last checkpoint that restores, with its record, or None when the run was stopped
+    before its first. Each damaged checkpoint passed over is reported in one line."""
+    checkpointer = Checkpointer(plan.run_dir.checkpoints)
+    skipped: list[str] = []
+    try:
+        restored = checkpointer.restore_latest(abstract_state, skipped, functools.partial(record_problem, plan))
+    except (CheckpointMismatch, CheckpointDamaged) as error:
+        raise UsageError(f"--resume {plan.out}: {error}") from None
+    finally:
+        checkpointer.close()
+    for line in skipped:
+        print(f"warning: --resume {plan.out}: {line}; falling back to the previous checkpoint", file=sys.stderr)
+    if restored is not None:
+        record = restored[1]
+        check_trained_with(plan, record.get("trained_with"), f"the checkpoint at update {record.get('update')} was trained with")
+        source = f"the checkpoint at update {record.get('update')}"
+        plan.run_dir.check_config(plan.run_dir.read_config(), record.get("config_sha256"), source)
+    return restored
+
+
+def record_problem(plan: RunPlan, state: ppo.TrainState, record: dict[str, Any]) -> str | None:
+    """Why a restored checkpoint's record disagrees with its state or with metrics.jsonl (None:
+    it agrees), before metrics.jsonl is cut to the size it records."""
+    update = record.get("update")
+    counted = {int(count) for count in on_host(state.update).ravel()}
+    if not isinstance(update, int) or counted != {update}:
+        return f"its record says update {update!r}, its state {', '.join(map(str, sorted(counted)))}"
+    problem = plan.run_dir.metrics_problem(record.get("metrics_bytes"), record.get("metrics_sha256"), update)
+    if problem is None and "lineage_bytes" in record:  # checkpoints of populations, since they record it
+        problem = plan.run_dir.lineage_problem(record["lineage_bytes"], record.get("lineage_sha256"))
+    return problem

@@ -31,12 +31,11 @@ from rpo_jax.errors import Diverged, Interrupted, Terminated, TrackingFailed, Us
 from rpo_jax.parallel import devices
 from rpo_jax.parallel.devices import is_primary
 from rpo_jax.run import eval_program, population, video
-from rpo_jax.run.checkpoint import Checkpointer
+from rpo_jax.run.checkpoint import Checkpointer, RunCheckpoints, check_layout, checkpoint_on_stop, restore
 from rpo_jax.run.directory import RunDir, hold_lock, write_rows
 from rpo_jax.run.plan import PLAN_DEFAULTS, RunPlan, config_record, describe_runs, run_label
 from rpo_jax.run.records import (
-    Clock, RunCheckpoints, check_layout, checkpoint_on_stop, divergence_message, first_nonfinite, logged_rows,
-    progress_metrics, record_returns, restore, summarise,
+    Clock, divergence_message, first_nonfinite, logged_rows, progress_metrics, record_returns, summarise,
 )  # fmt: skip
 from rpo_jax.run.saved_policy import params_bytes
 
