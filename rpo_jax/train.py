@@ -146,7 +146,7 @@ def train_with_display(plan: Any, tracking: Tracking, processes: Processes) -> d
 
         sinks.append(WandbSink(tracking.wandb_project, tracking.wandb_entity, tracking.wandb_mode, tracking.wandb_group))
     try:
-        return chunks.train(plan, sinks=sinks, progress=progress)
+        return chunks.run_plan(plan, sinks=sinks, progress=progress)
     finally:
         progress.close()
 

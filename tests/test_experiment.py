@@ -153,7 +153,7 @@ def test_killed_experiment_resumes_to_identical_results(uninterrupted, tmp_path)
 
     before = files()
     with pytest.raises(UsageError, match="does not match the config"):
-        chunks.train(plan_module.resumed_plan(tampered))
+        chunks.run_plan(plan_module.resumed_plan(tampered))
     assert files() == before
     argv = ["--resume", str(tampered), "--env", "brax/ant"]
     with pytest.raises(UsageError, match="made with --env cartpole, not brax/ant"):

@@ -231,7 +231,7 @@ def test_a_run_of_several_processes_leaves_the_compile_cache_off(monkeypatch):
     # program read by process 0 and compiled by the others got run ids that never met.
     used = []
     monkeypatch.setattr(chunks, "use_compile_cache", used.append)
-    monkeypatch.setattr(chunks, "train", lambda plan, sinks, progress: {})
+    monkeypatch.setattr(chunks, "run_plan", lambda plan, sinks, progress: {})
     config = types.SimpleNamespace(num_updates=1, batch_size=1, num_envs=1)
     plan = types.SimpleNamespace(env="cartpole", num_seeds=1, config=config)
     for count in (1, 2):

@@ -109,7 +109,7 @@ def no_wandb_credentials(tmp_path, monkeypatch):
 
 
 def test_wandb_online_without_credentials_is_refused_before_anything(tmp_path, capsys, monkeypatch, no_wandb_credentials):
-    monkeypatch.setattr(chunks, "train", lambda *args, **kwargs: pytest.fail("training began"))
+    monkeypatch.setattr(chunks, "run_plan", lambda *args, **kwargs: pytest.fail("training began"))
     out = tmp_path / "run"
     assert train.main([*TINY_FLAGS, "--track", "wandb", "--out", str(out)]) == 2
     assert one_line(capsys) == (

@@ -38,7 +38,7 @@ def train_runs(
     steps done per run and a dict of floats (`records.progress_metrics`: the trainer's metrics,
     `eval_return` after an evaluation, `sps`), as Brax's progress_fn; `sinks` get the logged rows."""
     plan = new_plan(env, config, dataclasses.replace(spec or RunSpec(), out=Path(out)))
-    return chunks.train(plan, sinks, progress_fn)
+    return chunks.run_plan(plan, sinks, progress_fn)
 
 
 def save_run(

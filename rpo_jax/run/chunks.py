@@ -1,9 +1,9 @@
 """The runs of one command (seeds x sweep points) trained in one compiled program.
 
     plan = new_plan("cartpole", Config(), RunSpec(out=Path("runs/x"), num_seeds=2))  # rpo_jax.run.plan
-    summary = train(plan, sinks=[TensorBoardSink()], progress=None)
+    summary = run_plan(plan, sinks=[TensorBoardSink()], progress=None)
 
-`train` compiles one chunk of updates for all runs, calls it until the run is done, writes the
+`run_plan` compiles one chunk of updates for all runs, calls it until the run is done, writes the
 logged rows to metrics.jsonl and to the sinks passed in, checkpoints between chunks, and at the
 end writes the parameters and summary.json. A plan made by `plan.resumed_plan` continues from the
 last checkpoint, exactly (on a CPU) except that host-side simulators start fresh episodes.
@@ -103,7 +103,7 @@ class Compiled:
     evolve: population.StepProgram | None = None  # population-based training's step; None: off
 
 
-def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
+def run_plan(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None = None) -> dict[str, Any]:
     """Trains every run of `plan` and returns the summary (also written to summary.json).
 
     One process at a time writes a run directory (`directory.hold_lock`). A new run that fails
@@ -120,7 +120,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
         video.check_video(env, "--capture-video")
     if not is_primary():
         with _interruptible(plan), _out_of_memory_refused(), environment_failure(plan.env):
-            return train_locked(plan, env, grid, (), None)
+            return run_locked(plan, env, grid, (), None)
     existed = plan.out.exists()
     with hold_lock(plan.out):
         if not plan.resuming and not plan.run_dir.is_new():
@@ -129,7 +129,7 @@ def train(plan: RunPlan, sinks: Sequence[Sink] = (), progress: ProgressFn | None
             raise UsageError(f"--resume {plan.out}: that run has already finished (summary.json exists)")
         try:
             with _interruptible(plan), _out_of_memory_refused(), environment_failure(plan.env):
-                return train_locked(plan, env, grid, sinks, progress)
+                return run_locked(plan, env, grid, sinks, progress)
         except (Diverged, UsageError, OSError) as error:
             resumable = plan.resuming or plan.run_dir.has_checkpoint()
             if not resumable:
@@ -153,7 +153,7 @@ def check_environment(name: str, env: envs.Env) -> None:
         raise UsageError(f"--env {name}: {problems[0]}{more}; python -m rpo_jax.envs --check {name} checks it in full")
 
 
-def train_locked(
+def run_locked(
     plan: RunPlan, env: envs.Env, grid: list[dict[str, float]], sinks: Sequence[Sink], progress: ProgressFn | None
 ) -> dict[str, Any]:
     swept = list(grid[0])
@@ -179,7 +179,7 @@ def train_locked(
     record_returns(kept_rows, logged_returns)
     try:
         try:
-            state, seconds = train_chunks(plan, compiled, runs, sinks, progress, logged_returns)
+            state, seconds = chunk_loop(plan, compiled, runs, sinks, progress, logged_returns)
         except BaseException:
             for sink in sinks:
                 sink.close(None)
@@ -348,7 +348,7 @@ def due_after(plan: RunPlan, compiled: Compiled, first_update: int, checkpoint: 
     )
 
 
-def train_chunks(
+def chunk_loop(
     plan: RunPlan, compiled: Compiled, runs: list[dict[str, Any]], sinks: Sequence[Sink],
     progress: ProgressFn | None, logged_returns: dict[str, list[list[float]]],
 ) -> tuple[ppo.TrainState, dict[str, float]]:  # fmt: skip

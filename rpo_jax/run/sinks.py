@@ -1,5 +1,5 @@
 """Where a run's progress and logged rows go besides metrics.jsonl: TensorBoard and the terminal
-(W&B: `rpo_jax.run.wandb_sink`). The command line passes them to `chunks.train` (see `chunks.Sink` and
+(W&B: `rpo_jax.run.wandb_sink`). The command line passes them to `chunks.run_plan` (see `chunks.Sink` and
 `chunks.ProgressFn`)."""
 
 from __future__ import annotations
