@@ -313,12 +313,12 @@ class BallBalance(StepsOwnModel):
         """Moves the knee targets by the action and advances the physics one control step. The
         returned data holds the new qpos and qvel, and the sensor readings and frames of the
         forces that acted during the step."""
-        from rpo_jax.envs.mjx_support import mjx
+        from rpo_jax.envs.mjx_support import physics_step
 
         action = jnp.clip(action, -1.0, 1.0)
         target = jnp.clip(state.target + CONTROL_DT * ACTION_SPEED * action, self.knee_low, self.knee_high)
         data = self.data_template.replace(qpos=state.qpos, qvel=state.qvel, qacc_warmstart=state.qacc_warmstart, ctrl=target)
-        data = mjx.step(self.model, data)
+        data = physics_step(self.model, data)
         return BallBalanceState(qpos=data.qpos, qvel=data.qvel, qacc_warmstart=data.qacc, target=target), data
 
     def time_step(self, data: mjx.Data) -> TimeStep:

@@ -117,11 +117,11 @@ class Cartpole(StepsOwnModel):
         return state, first_step(self._observe(state))
 
     def step(self, state: CartpoleState, action: jax.Array) -> tuple[CartpoleState, TimeStep]:
-        from rpo_jax.envs.mjx_support import mjx
+        from rpo_jax.envs.mjx_support import physics_step
 
         data = self.data_template.replace(qpos=state.qpos, qvel=state.qvel, ctrl=jnp.clip(action, -1.0, 1.0))
         for _ in range(self.substeps):
-            data = mjx.step(self.model, data)
+            data = physics_step(self.model, data)
         state = CartpoleState(qpos=data.qpos, qvel=data.qvel)
         x, angle = state.qpos
         x_dot, angle_dot = state.qvel
