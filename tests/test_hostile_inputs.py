@@ -1,5 +1,6 @@
-"""Hostile input to every command: one line, exit code 2, no traceback, and nothing run that a
-run directory names but does not own."""
+"""Bad and hostile input to every command: one line, exit code 2, no traceback, before anything
+is written (train's flags, report's results and --out, experiment's runs and environments, the
+library's own errors, out of memory), and nothing run that a run directory names but does not own."""
 
 from __future__ import annotations
 
@@ -12,18 +13,24 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import pytest
-from point_mass import SPEC, PointMass, PointMassSim
-from point_mass_runs import one_line
+from point_mass import SPEC, PointMassSim
+from point_mass_runs import TINY_FLAGS, one_line, test_envs
 
 from rpo_jax import envs, evaluate, experiment, export, train
+from rpo_jax.config import Config
 from rpo_jax.envs import registry
 from rpo_jax.envs.host import SequentialSimulators
+from rpo_jax.errors import Diverged, UsageError
 from rpo_jax.report import compose
 from rpo_jax.report import results
+from rpo_jax.run import chunks
 from rpo_jax.run.directory import CONFIG_FILE, METRICS_FILE, SUMMARY_FILE, RunDir
 
-TINY_FLAGS = [
+__all__ = ["test_envs"]  # point_mass_runs' fixtures: pytest finds them here by these names
+
+FOUR_UPDATES = [
     "--num-envs", "8", "--num-steps", "16", "--num-minibatches", "2", "--update-epochs", "1",
     "--total-timesteps", str(8 * 16 * 4), "--quiet",
 ]  # fmt: skip
@@ -31,9 +38,9 @@ BINARY = bytes(range(256)) * 4
 
 
 @pytest.fixture(scope="module", autouse=True)
-def point_mass():
+def raising_env(test_envs):
+    """test/raises_mid_run beside point_mass_runs' test environments (test/point_mass, ...)."""
     saved = dict(registry._REGISTRY)
-    envs.register_env("test/point_mass", PointMass, PointMass.spec)
     envs.register_env("test/raises_mid_run", raises_mid_run, dataclasses.replace(SPEC, name="raises_mid_run"))
     yield
     registry._REGISTRY.clear()
@@ -43,7 +50,7 @@ def point_mass():
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("finished") / "run"
-    assert train.main(["--env", "test/point_mass", *TINY_FLAGS, "--out", str(out)]) == 0
+    assert train.main(["--env", "test/point_mass", *FOUR_UPDATES, "--out", str(out)]) == 0
     return out
 
 
@@ -62,7 +69,7 @@ def copied(finished, tmp_path) -> Path:
 
 
 def test_envs_given_no_name_is_refused(tmp_path, capsys):
-    argv = ["ppo-vs-rpo", "--envs", "--num-seeds", "1", *TINY_FLAGS, "--out", str(tmp_path / "x")]
+    argv = ["ppo-vs-rpo", "--envs", "--num-seeds", "1", *FOUR_UPDATES, "--out", str(tmp_path / "x")]
     assert experiment.main(argv) == 2
     assert one_line(capsys) == "error: --envs needs one or more environment names (python -m rpo_jax.envs lists them)"
     assert not (tmp_path / "x").exists()
@@ -168,7 +175,7 @@ def raises_mid_run() -> envs.HostEnv:
 @pytest.mark.parametrize("checkpoint", [False, True])
 def test_a_host_simulator_raising_mid_run_is_one_line_and_the_run_handled(tmp_path, capsys, checkpoint):
     out = tmp_path / "run"
-    flags = ["--env", "test/raises_mid_run", *TINY_FLAGS, "--out", str(out)]
+    flags = ["--env", "test/raises_mid_run", *FOUR_UPDATES, "--out", str(out)]
     flags += ["--checkpoint-every", str(8 * 16)] if checkpoint else []
     assert train.main(flags) == 2
     line = one_line(capsys)
@@ -221,7 +228,7 @@ def test_the_project_checkout_and_python_p_are_not_refused(tmp_path):
 
 
 def test_split_epochs_on_one_device_is_refused(tmp_path, capsys):
-    argv = ["--env", "test/point_mass", *TINY_FLAGS, "--num-seeds", "2", "--devices", "1", "--split-epochs"]
+    argv = ["--env", "test/point_mass", *FOUR_UPDATES, "--num-seeds", "2", "--devices", "1", "--split-epochs"]
     assert train.main([*argv, "--out", str(tmp_path / "run")]) == 2
     message = "error: --split-epochs runs the epochs on the devices besides the first; this process has 1"
     assert one_line(capsys).startswith(message)
@@ -245,7 +252,7 @@ def test_a_bad_plan_field_in_config_is_refused_on_resume(copied, capsys, field, 
 def test_sigterm_during_a_checkpoints_write_prints_one_line(tmp_path, attempt):
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parent), os.environ.get("PYTHONPATH")]))}
-    flags = [*TINY_FLAGS, "--total-timesteps", str(8 * 16 * 2000), "--checkpoint-every", str(8 * 16)]
+    flags = [*FOUR_UPDATES, "--total-timesteps", str(8 * 16 * 2000), "--checkpoint-every", str(8 * 16)]
     argv = [sys.executable, "-P", "-m", "rpo_jax.train", "--env", "point_mass:PointMass", *flags, "--out", str(out)]
     process = subprocess.Popen(argv, cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
@@ -257,3 +264,129 @@ def test_sigterm_during_a_checkpoints_write_prints_one_line(tmp_path, attempt):
     _, stderr = process.communicate(timeout=300)
     lines = [line for line in stderr.splitlines() if line.strip()]
     assert process.returncode == 143 and len(lines) == 1 and lines[0].startswith("terminated (resumes from update"), stderr
+
+
+# --------------------------------------------------------------------------------------------
+# Bad values of train, report and experiment, and the library's errors
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--rpo-alpha", "inf"], "rpo_alpha must be a finite number, got inf"),
+        (["--ent-coef", "inf"], "ent_coef must be a finite number"),
+        (["--lr", "nan"], "lr must be a finite number, got nan"),
+        (["--vf-coef", "inf"], "vf_coef must be a finite number"),
+        (["--reward-scale", "inf"], "reward_scale must be a finite number"),
+        (["--kl-target", "inf"], "kl_target must be a finite number"),
+        (["--adam-eps", "inf"], "adam_eps must be a finite number"),
+        (["--algo", "rad", "--aug-high", "inf"], "aug_high must be a finite number"),
+        (["--sweep", "rpo_alpha=0.5,inf"], "--sweep: rpo_alpha must be a finite number, got inf"),
+        (["--sweep", "lr=0.001,nan"], "--sweep: lr must be a finite number, got nan"),
+        (["--sweep", "rpo_alpha=0.5,0.5"], "a value is given twice"),
+        (["--seed", "4294967297"], "seeds in [0, 2**32 - 1"),
+        (["--seed", "4294967295", "--num-seeds", "2"], "got seeds 4294967295 to 4294967296"),
+        (["--seed", "-1"], "the PRNG key's range"),
+        (["--num-envs", "65536", "--num-steps", "32768", "--num-minibatches", "1"], "must be below 2**31"),
+        (["--total-timesteps", str(2**31 * 128)], "must be below 2**31 = 2147483648 updates"),
+        (["--num-env", "8"], "Unrecognized options: --num-env"),
+        (["--env", "test/point_mas"], "did you mean test/point_mass"),  # the last --env given counts
+        (["--algo", "ppo", "--aug-low", "0.5"], "--aug-low applies to --algo rad or drac only, not ppo"),
+        (["--algo", "rpo", "--aug-high", "2"], "--aug-high applies to --algo rad or drac only, not rpo"),
+    ],
+)
+def test_bad_values_are_refused_before_anything_is_written(tmp_path, capsys, args, message):
+    out = tmp_path / "never"
+    assert train.main([*TINY_FLAGS, *args, "--out", str(out)]) == 2
+    line = one_line(capsys)
+    assert line.startswith("error: ") and message in line, line
+    assert len(line) < 300
+    assert not out.exists()
+
+
+def test_out_of_memory_is_one_line_and_leaves_out_free(tmp_path, capsys, monkeypatch):
+    def exhausted(*args):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 98.00GiB.")
+
+    monkeypatch.setattr(chunks, "compile_runs", exhausted)
+    out = tmp_path / "run"
+    assert train.main([*TINY_FLAGS, "--out", str(out)]) == 2
+    line = one_line(capsys)
+    assert "out of memory on" in line and "98.00GiB" in line and "lower --num-envs" in line, line
+    assert not out.exists()
+
+
+def results_dir(tmp_path: Path) -> Path:
+    directory = tmp_path / "results"
+    directory.mkdir()
+    row = {name: 1.0 for name in results.COLUMNS}
+    row.update(experiment="x", env="cartpole", variant="rpo", algo="rpo", dist="gaussian")
+    results.write_results(directory, [{**row, "update": update} for update in (1.0, 2.0)])
+    return directory
+
+
+def test_report_refuses_bad_results_and_foreign_out_directories(tmp_path, capsys):
+    directory = results_dir(tmp_path)
+    assert compose.main([]) == 2
+    assert one_line(capsys) == "error: give DIR: one or more experiment directories with results.csv, or run directories"
+    results = directory / compose.RESULTS_FILE
+    good = results.read_text()
+    results.write_text(good.replace(",policy_entropy", ",entropy"))
+    assert compose.main([str(directory)]) == 2
+    assert "column(s) policy_entropy missing" in one_line(capsys)
+    lines = good.splitlines()
+    results.write_text("\n".join([lines[0], lines[1].rsplit(",", 1)[0] + ",abc", *lines[2:]]) + "\n")
+    assert compose.main([str(directory)]) == 2
+    assert "line 2: eval_return must be a number, got 'abc'" in one_line(capsys)  # the last column
+    results.write_text(good)
+
+    (tmp_path / "file").write_text("mine")
+    assert compose.main([str(directory), "--out", str(tmp_path / "file")]) == 2
+    assert "is a file; give a directory" in one_line(capsys)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.md").write_text("my own notes\n")
+    assert compose.main([str(directory), "--out", str(mine)]) == 2
+    assert "holds files the report did not write (report.md)" in one_line(capsys)
+    assert (mine / "report.md").read_text() == "my own notes\n"
+    # Its own report it rewrites, in a new directory or next to the results.
+    assert compose.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert compose.main([str(directory), "--out", str(tmp_path / "new")]) == 0
+    assert compose.main([str(directory)]) == 0
+
+
+def test_experiment_checks_every_run_before_writing(tmp_path, capsys):
+    out = tmp_path / "experiment"
+    base = ["ppo-vs-rpo", "--out", str(out), "--num-seeds", "1", "--quiet"]
+    assert experiment.main([*base, "--envs", "test/point_mass", "test/point_mass"]) == 2
+    assert "--envs names test/point_mass more than once" in one_line(capsys)
+    assert experiment.main([*base, "--envs", "test/point_mass", "--total-timesteps", "10"]) == 2
+    assert "total_timesteps must be at least one batch" in one_line(capsys)
+    assert experiment.main([*base, "--envs", "test/point_mas"]) == 2
+    assert "did you mean test/point_mass" in one_line(capsys)
+    assert not out.exists()
+
+
+def test_experiment_refuses_envs_that_would_share_a_directory(tmp_path, capsys, monkeypatch):
+    for module, factory in (("cola", "b_c"), ("cola_b", "c")):  # cola:b_c and cola_b:c, both cola_b_c
+        (tmp_path / f"{module}.py").write_text(f"from point_mass import PointMass\n{factory} = PointMass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "experiment"
+    # Refused before the runs are checked (--total-timesteps 10 is below a batch): without the check, in seconds.
+    args = ["ppo-vs-rpo", "--out", str(out), "--total-timesteps", "10", "--quiet"]
+    args += ["--envs", "test/point_mass", "cola:b_c", "cola_b:c"]
+    assert experiment.main(args) == 2
+    line = one_line(capsys)
+    assert line == "error: --envs cola:b_c and cola_b:c would share the directory runs/cola_b_c; run them apart", line
+    assert not out.exists()
+    # The names of existing experiments' directories are kept, so that they continue.
+    job = experiment.EXPERIMENTS["ppo-vs-rpo"].jobs[0]
+    assert experiment.run_dir(out, "test/point_mass", job) == out / "runs" / "test_point_mass" / job.name
+
+
+def test_library_errors_are_usage_errors():
+    with pytest.raises(UsageError, match="finite"):
+        Config(lr=float("inf")).validate()
+    with pytest.raises(UsageError, match="unknown field"):
+        Config.from_dict({"colour": 1})
+    assert issubclass(Diverged, Exception) and not issubclass(Diverged, UsageError)
