@@ -73,8 +73,9 @@ def _entry(name: str) -> _Entry:
     # Not kept in the registry, so that they are never listed and a changed module is read again.
     suite = next((suite for suite in OPEN_SUITES if suite.serves(name)), None)
     if suite is not None:
+        entry = _Entry(*suite.unlisted(name, import_factory))  # its options checked first, by the suite
         imported_module(name)  # refuses a module name it would import that is not absolute
-        return _Entry(*suite.unlisted(name, import_factory))
+        return entry
     if ":" in name:
         return _Entry(lambda: import_factory(name)(), None)
     close = difflib.get_close_matches(name, _REGISTRY, n=5)
