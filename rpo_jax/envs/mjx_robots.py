@@ -73,7 +73,8 @@ def menagerie_path(task: str) -> Path:
     folder = next(folder for prefix, folder in MENAGERIE_FOLDERS.items() if task.startswith(prefix))
     for package in ASSET_PACKAGES:
         found = importlib.util.find_spec(package)
-        for location in found.submodule_search_locations or () if found else ():
+        locations = found.submodule_search_locations if found else None
+        for location in locations or ():
             models = Path(location) / "mujoco" / "playground" / "assets" / "mujoco_menagerie"
             if (models / folder).is_dir():
                 return models

@@ -127,7 +127,7 @@ def _host_env(task: str, options: dict[str, Any], name: str) -> HostEnv:
         ),
         # Drawn from envpool's default view of the task (camera -1), with the run's settings.
         lambda seed, width, height: DrawnEnvpoolTask(
-            f"{task}-v1", keys, seed, width, height, 1.0 / options.get("ctrl_dt", _settings(task)["ctrl_dt"]), options, -1
+            f"{task}-v1", keys, seed, width, height, 1.0 / options.get("ctrl_dt", facts.control_dt), options, -1
         ),
         with_physics=with_physics,
         task_metrics=metrics,
